@@ -78,3 +78,7 @@ class MissingExtra(GeonavError):
         )
         self.package = package
         self.extra = extra
+
+
+class GeonavWarning(UserWarning):
+    """Something still works but loses data, accuracy or speed (coarse imagery, masked tiles)."""

@@ -1,0 +1,360 @@
+"""The pymavlink backend of :class:`~geonav.mavlink_bridge.vehicle.Vehicle` (PX4 and ArduPilot).
+
+Threads: one receiver thread owns ``recv_match`` and keeps the latest
+telemetry; one thread sends our own 1 Hz HEARTBEAT (some autopilot services
+start only after they see one); senders share a lock. Commands go out as
+COMMAND_LONG and wait for the matching COMMAND_ACK (resent with an
+incremented ``confirmation`` when none arrives; IN_PROGRESS extends the wait).
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+from geonav.errors import CommandRejected, FlightError, FlightTimeout
+from geonav.geo import LocalNED, LonLat
+from geonav.mavlink_bridge import modes as M
+from geonav.mavlink_bridge._mav import mavutil
+from geonav.mavlink_bridge.vehicle import Connection, VehicleState
+
+log = logging.getLogger(__name__)
+
+_CMD_NAMES = {
+    M.MAV_CMD_NAV_RETURN_TO_LAUNCH: "NAV_RETURN_TO_LAUNCH",
+    M.MAV_CMD_NAV_LAND: "NAV_LAND",
+    M.MAV_CMD_NAV_TAKEOFF: "NAV_TAKEOFF",
+    M.MAV_CMD_DO_SET_MODE: "DO_SET_MODE",
+    M.MAV_CMD_COMPONENT_ARM_DISARM: "COMPONENT_ARM_DISARM",
+    M.MAV_CMD_SET_MESSAGE_INTERVAL: "SET_MESSAGE_INTERVAL",
+    M.MAV_CMD_REQUEST_MESSAGE: "REQUEST_MESSAGE",
+}
+
+
+def command_name(command: int) -> str:
+    """``MAV_CMD_*`` name of a command id."""
+    return "MAV_CMD_" + _CMD_NAMES.get(command, str(command))
+
+
+class PymavlinkVehicle:
+    """A Vehicle over pymavlink.
+
+    Args:
+        conn: parsed connection.
+        system_id: only accept this autopilot system id (None: first autopilot seen).
+        source_system: our MAVLink system id (255 = GCS, what ArduPilot's
+            ``MAV_GCS_SYSID`` expects by default).
+        source_component: our component id (191 = onboard computer).
+    """
+
+    def __init__(
+        self,
+        conn: Connection,
+        *,
+        system_id: int | None = None,
+        source_system: int = 255,
+        source_component: int = M.MAV_COMP_ID_ONBOARD_COMPUTER,
+    ) -> None:
+        self.conn = conn
+        self.autopilot = ""
+        self.on_statustext: Callable[[int, str], None] | None = None
+        self._want_sysid = system_id
+        self._src = (source_system, source_component)
+        self._m: Any = None
+        self._send_lock = threading.Lock()
+        self._lock = threading.Condition()
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._target = (0, 0)
+        self._hb: Any = None
+        self._hb_t = -math.inf
+        self._pos: LocalNED | None = None
+        self._vel: tuple[float, float, float] | None = None
+        self._pos_t = -math.inf
+        self._origin: LonLat | None = None
+        self._home: LonLat | None = None
+        self._landed_state = 0
+        self._acks: dict[int, Any] = {}
+        self._texts: collections.deque[str] = collections.deque(maxlen=20)
+        self._t0 = time.monotonic()
+
+    # ---------------------------------------------------------------- link
+    def connect(self, timeout_s: float) -> None:
+        """Open the link and wait for an autopilot HEARTBEAT.
+
+        Raises:
+            FlightTimeout: no autopilot heartbeat within ``timeout_s``.
+        """
+        device, baud = self.conn.pymavlink()
+        try:
+            self._m = mavutil.mavlink_connection(
+                device,
+                baud=baud,
+                source_system=self._src[0],
+                source_component=self._src[1],
+                autoreconnect=True,
+            )
+        except OSError as err:
+            raise FlightError(f"cannot open MAVLink connection {self.conn.raw!r}: {err}") from err
+        self._stop.clear()
+        for target, name in ((self._recv_loop, "mav-recv"), (self._heartbeat_loop, "mav-hb")):
+            t = threading.Thread(target=target, name=name, daemon=True)
+            t.start()
+            self._threads.append(t)
+        with self._lock:
+            ok = self._lock.wait_for(lambda: self._hb is not None, timeout=timeout_s)
+        if not ok:
+            self.close()
+            raise FlightTimeout(
+                f"no autopilot HEARTBEAT on {self.conn.raw!r} within {timeout_s:.0f} s; check the "
+                "connection string (udpin: listens, udpout:/tcp: connect) and the baud rate"
+            )
+        log.info(
+            "connected to %s autopilot sysid %d compid %d on %s",
+            self.autopilot, self._target[0], self._target[1], self.conn.raw,
+        )
+
+    def close(self) -> None:
+        """Stop the threads and close the link."""
+        self._stop.set()
+        for t in self._threads:
+            t.join(timeout=1.0)
+        self._threads.clear()
+        if self._m is not None:
+            try:
+                self._m.close()
+            except OSError as err:
+                log.debug("closing MAVLink connection: %s", err)
+            self._m = None
+
+    def _send(self, fn_name: str, *args: Any) -> None:
+        if self._m is None:
+            raise FlightError("MAVLink connection is closed")
+        with self._send_lock:
+            try:
+                getattr(self._m.mav, fn_name)(*args)
+            except OSError as err:
+                log.warning("MAVLink send %s failed: %s", fn_name, err)
+
+    def _heartbeat_loop(self) -> None:
+        while not self._stop.wait(0.0 if self._hb is None and time.monotonic() - self._t0 < 0.05 else 1.0):
+            self._send(
+                "heartbeat_send", M.MAV_TYPE_ONBOARD_CONTROLLER, M.MAV_AUTOPILOT_INVALID, 0, 0, 0
+            )
+
+    def _recv_loop(self) -> None:
+        while not self._stop.is_set():
+            m = self._m
+            if m is None:
+                return
+            try:
+                msg = m.recv_match(blocking=True, timeout=0.1)
+            except (OSError, ValueError) as err:
+                log.debug("MAVLink receive error: %s", err)
+                time.sleep(0.05)
+                continue
+            if msg is None:
+                continue
+            self._on_message(msg)
+
+    def _on_message(self, msg: Any) -> None:
+        kind = msg.get_type()
+        if kind == "BAD_DATA":
+            return
+        src = (msg.get_srcSystem(), msg.get_srcComponent())
+        if kind == "HEARTBEAT":
+            if msg.autopilot == M.MAV_AUTOPILOT_INVALID or msg.type == M.MAV_TYPE_GCS:
+                return
+            if self._hb is None:
+                if self._want_sysid is not None and src[0] != self._want_sysid:
+                    return
+                try:
+                    self.autopilot = M.flavour_from_heartbeat(msg.autopilot)
+                except FlightError as err:
+                    log.warning("ignoring heartbeat from %s: %s", src, err)
+                    return
+                # pymavlink's wait_heartbeat leaves target_component at 0: take it
+                # from the heartbeat's source component.
+                self._target = src
+                self._m.target_system, self._m.target_component = src
+            if src != self._target:
+                return
+            with self._lock:
+                self._hb = msg
+                self._hb_t = time.monotonic()
+                self._lock.notify_all()
+            return
+        if self._hb is None or src[0] != self._target[0]:
+            return
+        now = time.monotonic()
+        with self._lock:
+            if kind == "LOCAL_POSITION_NED":
+                self._pos = LocalNED(msg.x, msg.y, msg.z)
+                self._vel = (msg.vx, msg.vy, msg.vz)
+                self._pos_t = now
+            elif kind == "GPS_GLOBAL_ORIGIN":
+                self._origin = LonLat(msg.longitude / 1e7, msg.latitude / 1e7, msg.altitude / 1e3)
+            elif kind == "HOME_POSITION":
+                self._home = LonLat(msg.longitude / 1e7, msg.latitude / 1e7, msg.altitude / 1e3)
+            elif kind == "EXTENDED_SYS_STATE":
+                self._landed_state = msg.landed_state
+            elif kind == "COMMAND_ACK":
+                if msg.target_system in (0, self._src[0]) and msg.target_component in (
+                    0, self._src[1]
+                ):
+                    self._acks[msg.command] = msg
+            elif kind == "STATUSTEXT":
+                text = msg.text if isinstance(msg.text, str) else msg.text.decode(errors="replace")
+                self._texts.append(text)
+                level = logging.WARNING if msg.severity <= 4 else logging.INFO
+                log.log(level, "autopilot: %s", text)
+                if self.on_statustext is not None:
+                    self.on_statustext(msg.severity, text)
+            self._lock.notify_all()
+
+    # --------------------------------------------------------------- state
+    def state(self) -> VehicleState:
+        """The latest telemetry snapshot."""
+        now = time.monotonic()
+        with self._lock:
+            hb = self._hb
+            if hb is None:
+                raise FlightError("not connected: no autopilot heartbeat yet")
+            return VehicleState(
+                autopilot=self.autopilot,
+                system_status=hb.system_status,
+                mode=M.decode_mode(self.autopilot, hb.custom_mode),
+                armed=bool(hb.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED),
+                heartbeat_age_s=now - self._hb_t,
+                position=self._pos,
+                velocity_ned_mps=self._vel,
+                position_age_s=now - self._pos_t,
+                origin=self._origin,
+                home=self._home,
+                landed_state=self._landed_state,
+                last_statustext=self._texts[-1] if self._texts else "",
+            )
+
+    # ------------------------------------------------------------ commands
+    def command(self, command: int, params: tuple[float, ...], timeout_s: float, tries: int = 3) -> int:
+        """Send COMMAND_LONG and return the ACK's result (any result, not only ACCEPTED).
+
+        Raises:
+            FlightTimeout: no ACK after ``tries`` sends spread over ``timeout_s``.
+        """
+        p = tuple(params) + (0.0,) * (7 - len(params))
+        per_try = timeout_s / tries
+        with self._lock:
+            self._acks.pop(command, None)
+        for attempt in range(tries):
+            self._send(
+                "command_long_send", self._target[0], self._target[1], command, attempt, *p
+            )
+            deadline = time.monotonic() + per_try
+            with self._lock:
+                while True:
+                    left = deadline - time.monotonic()
+                    ack = self._acks.get(command)
+                    if ack is not None and ack.result == M.MAV_RESULT_IN_PROGRESS:
+                        self._acks.pop(command, None)
+                        deadline = time.monotonic() + per_try
+                        continue
+                    if ack is not None:
+                        self._acks.pop(command, None)
+                        return int(ack.result)
+                    if left <= 0:
+                        break
+                    self._lock.wait(left)
+        raise FlightTimeout(
+            f"no COMMAND_ACK for {command_name(command)} after {tries} tries in {timeout_s:.1f} s"
+        )
+
+    def _checked(self, command: int, params: tuple[float, ...], timeout_s: float, what: str) -> None:
+        result = self.command(command, params, timeout_s)
+        if result != M.MAV_RESULT_ACCEPTED:
+            reason = self._recent_text()
+            raise CommandRejected(
+                f"{what}: {command_name(command)} answered "
+                f"{M.MAV_RESULT_NAMES.get(result, result)}"
+                + (f" (autopilot says: {reason!r})" if reason else "")
+            )
+
+    def _recent_text(self) -> str:
+        with self._lock:
+            return self._texts[-1] if self._texts else ""
+
+    def request_telemetry(self, rate_hz: float, timeout_s: float) -> None:
+        """SET_MESSAGE_INTERVAL for the streams the bridge reads; request origin and home once."""
+        interval_us = 1e6 / rate_hz
+        streams = {
+            "LOCAL_POSITION_NED": interval_us,
+            "GLOBAL_POSITION_INT": interval_us,
+            "EXTENDED_SYS_STATE": 1e6,
+            "SYS_STATUS": 1e6,
+            "HOME_POSITION": 2e6,
+        }
+        for name, us in streams.items():
+            result = self.command(M.MAV_CMD_SET_MESSAGE_INTERVAL, (M.MSG_ID[name], us), timeout_s)
+            if result != M.MAV_RESULT_ACCEPTED:
+                log.warning("SET_MESSAGE_INTERVAL %s answered %s", name, M.MAV_RESULT_NAMES.get(result))
+        self.request_message("GPS_GLOBAL_ORIGIN", timeout_s)
+        self.request_message("HOME_POSITION", timeout_s)
+
+    def request_message(self, name: str, timeout_s: float) -> bool:
+        """MAV_CMD_REQUEST_MESSAGE; True when accepted."""
+        result = self.command(M.MAV_CMD_REQUEST_MESSAGE, (M.MSG_ID[name],), timeout_s)
+        return result == M.MAV_RESULT_ACCEPTED
+
+    def set_origin(self, origin: LonLat) -> None:
+        """SET_GPS_GLOBAL_ORIGIN (a message, no ACK: watch GPS_GLOBAL_ORIGIN)."""
+        self._send(
+            "set_gps_global_origin_send", self._target[0],
+            int(round(origin.lat_deg * 1e7)), int(round(origin.lon_deg * 1e7)),
+            int(round(origin.alt_m * 1000)),
+        )
+
+    def set_mode(self, name: str, timeout_s: float) -> None:
+        """DO_SET_MODE by generic name; ACK checked."""
+        params = M.encode_mode(self.autopilot, name)
+        self._checked(M.MAV_CMD_DO_SET_MODE, tuple(float(v) for v in params), timeout_s, f"mode {name}")
+
+    def arm(self, timeout_s: float) -> None:
+        """One arming attempt."""
+        self._checked(M.MAV_CMD_COMPONENT_ARM_DISARM, (1.0,), timeout_s, "arming")
+
+    def disarm(self, timeout_s: float) -> None:
+        """Disarm."""
+        self._checked(M.MAV_CMD_COMPONENT_ARM_DISARM, (0.0,), timeout_s, "disarming")
+
+    def takeoff(self, alt_m: float, timeout_s: float) -> None:
+        """MAV_CMD_NAV_TAKEOFF, p7 = altitude above home (ArduPilot semantics)."""
+        self._checked(
+            M.MAV_CMD_NAV_TAKEOFF, (0, 0, 0, math.nan, math.nan, math.nan, float(alt_m)),
+            timeout_s, f"take-off to {alt_m:.1f} m",
+        )
+
+    def land(self, timeout_s: float) -> None:
+        """Switch to LAND mode."""
+        self.set_mode("land", timeout_s)
+
+    def return_to_launch(self, timeout_s: float) -> None:
+        """Switch to RTL mode."""
+        self.set_mode("rtl", timeout_s)
+
+    def send_position_target(self, target: LocalNED, yaw_deg: float) -> None:
+        """One SET_POSITION_TARGET_LOCAL_NED, MAV_FRAME_LOCAL_NED, type_mask 2552."""
+        t_ms = int((time.monotonic() - self._t0) * 1000) & 0xFFFFFFFF
+        self._send(
+            "set_position_target_local_ned_send", t_ms, self._target[0], self._target[1],
+            M.MAV_FRAME_LOCAL_NED, M.TYPE_MASK_POSITION_YAW,
+            float(target.north_m), float(target.east_m), float(target.down_m),
+            0.0, 0.0, 0.0, 0.0, 0.0, 0.0, math.radians(yaw_deg), 0.0,
+        )
+
+    def stop_setpoints(self) -> None:
+        """Nothing to stop: this backend sends only what the pump sends."""

@@ -1,0 +1,1 @@
+"""Ingestion: GeoTIFFs, XYZ tiles, MBTiles, tile downloads and synthetic scenes -> scene packages."""

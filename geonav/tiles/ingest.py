@@ -1,0 +1,484 @@
+"""Ingestion: source rasters in any CRS -> a scene package on the local tmerc grid.
+
+Every input the toolkit accepts (GeoTIFF, XYZ tile mosaics, MBTiles,
+synthetic scenes) becomes one or more :class:`RasterSource` (an array with its
+CRS, affine transform and validity mask) and goes through :func:`ingest`:
+
+1. plan the scene grid (:func:`plan_grid`): origin (default: the centre of the
+   sources), the local tmerc CRS there, a GSD (default: the finest the sources
+   support), bounds snapped to GSD multiples, optionally cut to a lon/lat bbox;
+2. reproject each source with rasterio/GDAL onto that grid, ``average`` when
+   downsampling and ``bilinear`` when upsampling, carrying the mask as an
+   alpha band; several sources are mosaicked, the first valid one wins;
+3. resample an optional DSM of absolute heights with ``max`` when downsampling
+   (so roofs survive), subtract the ground, and store height above ground;
+4. write the package atomically (:meth:`geonav.scene.Scene.save`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import warnings
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from affine import Affine
+
+from geonav.errors import GeonavWarning, IngestError, MissingCRS, NoOverlap
+from geonav.geo import LonLat, parse_crs, scene_crs
+from geonav.scene import Scene, sha256_file
+
+log = logging.getLogger(__name__)
+
+Progress = Callable[[str, float], None]
+"""Progress callback: (phase name, fraction 0..1)."""
+
+#: Highest altitude (m) of the paper's protocol; its view sets the margin a task needs.
+MAX_ALT_M = 300.0
+#: Lowest altitude (m); its view sets the finest GSD the imagery should have.
+MIN_ALT_M = 15.0
+META_TASK_SIZE_M = 150.0
+
+
+@dataclass
+class RasterSource:
+    """One georeferenced input raster held in memory.
+
+    Attributes:
+        data: (bands, H, W) array; 3 bands uint8 for imagery, 1 band float for a DSM.
+        crs: rasterio CRS of the source.
+        transform: affine pixel -> source CRS (upper-left corner convention).
+        mask: (H, W) bool validity mask, or None when every pixel is valid.
+        info: provenance recorded in the manifest (file, sha256, zoom, ...).
+    """
+
+    data: np.ndarray
+    crs: Any
+    transform: Affine
+    mask: np.ndarray | None = None
+    info: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return int(self.data.shape[1]), int(self.data.shape[2])
+
+    def bounds(self) -> tuple[float, float, float, float]:
+        h, w = self.shape
+        t = self.transform
+        xs = [t.c, t.c + t.a * w]
+        ys = [t.f, t.f + t.e * h]
+        return min(xs), min(ys), max(xs), max(ys)
+
+
+@dataclass(frozen=True)
+class SceneGrid:
+    """The target grid: local tmerc at ``origin``, north-up square pixels of ``gsd_m``."""
+
+    origin: LonLat
+    gsd_m: float
+    transform: Affine
+    width: int
+    height: int
+
+    @property
+    def crs(self):  # rasterio CRS of the local tmerc
+        from rasterio.crs import CRS as RioCRS
+
+        return RioCRS.from_wkt(scene_crs(self.origin).to_wkt())
+
+
+def open_raster(path: str | os.PathLike[str], *, bands: int | None = None) -> RasterSource:
+    """Read a GeoTIFF (or any GDAL raster) into a :class:`RasterSource`.
+
+    Args:
+        path: the file.
+        bands: 3 for imagery (RGB, alpha used as mask), 1 for a height raster.
+    """
+    import rasterio
+    from rasterio.errors import RasterioError
+
+    path = Path(path)
+    if not path.is_file():
+        raise IngestError(f"{path} does not exist")
+    try:
+        with rasterio.open(path) as src:
+            if src.crs is None:
+                raise MissingCRS(
+                    f"{path} has no CRS; assign one first, e.g. "
+                    f"'gdal_edit.py -a_srs EPSG:xxxx {path.name}'"
+                )
+            if src.transform == Affine.identity() and not src.gcps[0]:
+                raise MissingCRS(f"{path} has no geotransform; it is not georeferenced")
+            if src.transform.b or src.transform.d:
+                log.info("%s is rotated; GDAL will warp it", path)
+            if bands == 3:
+                if src.count < 3:
+                    raise IngestError(f"{path} has {src.count} band(s); imagery needs RGB")
+                data = src.read([1, 2, 3])
+                if data.dtype != np.uint8:
+                    data = _to_uint8(data, path)
+                mask = src.dataset_mask() > 0
+            else:
+                data = src.read([1]).astype(np.float32)
+                valid = src.read_masks(1) > 0
+                data[0][~valid] = np.nan
+                mask = valid
+            info = dict(file=path.name, path=str(path.resolve()), sha256=sha256_file(path),
+                        crs=parse_crs(src.crs.to_wkt()).to_wkt(), size_px=[src.width, src.height])
+            return RasterSource(data, src.crs, src.transform, mask, info)
+    except RasterioError as err:
+        raise IngestError(f"cannot read {path}: {err}") from err
+
+
+def _to_uint8(data: np.ndarray, path: Path) -> np.ndarray:
+    # 16-bit or float imagery: stretch the 0.2-99.8 percentile range to 0-255.
+    lo, hi = np.nanpercentile(data, [0.2, 99.8])
+    warnings.warn(f"{path.name} is {data.dtype}; stretched {lo:.4g}..{hi:.4g} to 8 bit",
+                  GeonavWarning, stacklevel=3)
+    scaled = (data.astype(np.float32) - lo) / max(hi - lo, 1e-9) * 255.0
+    return np.clip(np.nan_to_num(scaled), 0, 255).astype(np.uint8)
+
+
+def native_gsd_m(src: RasterSource, origin: LonLat) -> float:
+    """The source's pixel size in ground metres, measured in the scene CRS.
+
+    GDAL's suggested warp resolution handles degrees, feet and Web-Mercator's
+    1/cos(lat) scale in one go.
+    """
+    from rasterio.warp import calculate_default_transform
+
+    h, w = src.shape
+    dst_crs = SceneGrid(origin, 1.0, Affine.identity(), 1, 1).crs
+    transform, _, _ = calculate_default_transform(src.crs, dst_crs, w, h, *src.bounds())
+    return float(math.sqrt(abs(transform.a * transform.e)))
+
+
+def source_bounds_lonlat(src: RasterSource) -> tuple[float, float, float, float]:
+    from rasterio.warp import transform_bounds
+
+    return tuple(transform_bounds(src.crs, "EPSG:4326", *src.bounds(), densify_pts=21))
+
+
+def plan_grid(
+    sources: Sequence[RasterSource],
+    *,
+    gsd_m: float | None = None,
+    origin: LonLat | None = None,
+    bbox_lonlat: tuple[float, float, float, float] | None = None,
+) -> SceneGrid:
+    """Plan the scene grid covering the sources (cut to ``bbox_lonlat`` if given)."""
+    from rasterio.warp import transform_bounds
+
+    if not sources:
+        raise IngestError("no source rasters given")
+    lonlat = [source_bounds_lonlat(s) for s in sources]
+    w, s, e, n = (min(b[0] for b in lonlat), min(b[1] for b in lonlat),
+                  max(b[2] for b in lonlat), max(b[3] for b in lonlat))
+    if bbox_lonlat is not None:
+        bw, bs, be, bn = bbox_lonlat
+        if not (bw < be and bs < bn):
+            raise IngestError(f"bbox {bbox_lonlat} must be west,south,east,north with w<e, s<n")
+        if be <= w or bw >= e or bn <= s or bs >= n:
+            raise NoOverlap(f"bbox {bbox_lonlat} misses the data, which covers "
+                            f"lon {w:.6f}..{e:.6f}, lat {s:.6f}..{n:.6f}")
+        w, s, e, n = max(w, bw), max(s, bs), min(e, be), min(n, bn)
+    if origin is None:
+        origin = LonLat((w + e) / 2, (s + n) / 2, 0.0)
+    natives = [native_gsd_m(src, origin) for src in sources]
+    finest = min(natives)
+    if gsd_m is None:
+        gsd_m = float(f"{finest:.3g}")  # e.g. 0.2500003 -> 0.25
+    elif gsd_m < finest / 2:
+        raise IngestError(f"--gsd {gsd_m} m is more than 2x finer than the source's native "
+                          f"{finest:.3f} m/px; upsampling adds no detail, use >= {finest / 2:.3f}")
+    if gsd_m <= 0:
+        raise IngestError(f"gsd must be positive, got {gsd_m}")
+    probe = SceneGrid(origin, gsd_m, Affine.identity(), 1, 1)
+    xmin, ymin, xmax, ymax = transform_bounds("EPSG:4326", probe.crs, w, s, e, n,
+                                              densify_pts=21)
+    if bbox_lonlat is None:
+        # Shrink to the sources' own footprint in the scene CRS (no empty wedges from
+        # the lon/lat bbox of a rotated source).
+        boxes = [transform_bounds(src.crs, probe.crs, *src.bounds(), densify_pts=21)
+                 for src in sources]
+        xmin, ymin = min(b[0] for b in boxes), min(b[1] for b in boxes)
+        xmax, ymax = max(b[2] for b in boxes), max(b[3] for b in boxes)
+    x0, y0 = math.ceil(xmin / gsd_m - 1e-6) * gsd_m, math.ceil(ymin / gsd_m - 1e-6) * gsd_m
+    x1, y1 = math.floor(xmax / gsd_m + 1e-6) * gsd_m, math.floor(ymax / gsd_m + 1e-6) * gsd_m
+    width, height = round((x1 - x0) / gsd_m), round((y1 - y0) / gsd_m)
+    if width < 2 or height < 2:
+        raise IngestError(f"the scene would be {width}x{height} px at {gsd_m} m; "
+                          "the sources or the bbox are too small")
+    transform = Affine(gsd_m, 0.0, x0, 0.0, -gsd_m, y1)
+    return SceneGrid(origin, float(gsd_m), transform, width, height)
+
+
+def reproject_rgb(sources: Sequence[RasterSource], grid: SceneGrid,
+                  progress: Progress | None = None) -> tuple[np.ndarray, np.ndarray, str]:
+    """Mosaic the sources onto the grid: (rgb (H, W, 3) uint8, mask (H, W) bool, resampling)."""
+    from rasterio.warp import Resampling, reproject
+
+    rgb = np.zeros((3, grid.height, grid.width), np.uint8)
+    mask = np.zeros((grid.height, grid.width), bool)
+    methods = set()
+    for i, src in enumerate(sources):
+        native = native_gsd_m(src, grid.origin)
+        resampling = Resampling.average if grid.gsd_m > native * 1.01 else Resampling.bilinear
+        methods.add(resampling.name)
+        alpha = (src.mask if src.mask is not None
+                 else np.ones(src.shape, bool)).astype(np.uint8) * 255
+        stacked = np.concatenate([src.data, alpha[None]], axis=0)
+        out = np.zeros((4, grid.height, grid.width), np.uint8)
+        reproject(stacked, out, src_transform=src.transform, src_crs=src.crs,
+                  dst_transform=grid.transform, dst_crs=grid.crs, resampling=resampling,
+                  src_alpha=4, dst_alpha=4, num_threads=2, init_dest_nodata=True)
+        valid = out[3] >= 128
+        fill = valid & ~mask
+        rgb[:, fill] = out[:3, fill]
+        mask |= fill
+        if progress:
+            progress("reproject", (i + 1) / len(sources))
+    if not mask.any():
+        raise NoOverlap("no source pixel falls on the scene grid")
+    return np.ascontiguousarray(np.moveaxis(rgb, 0, 2)), mask, "+".join(sorted(methods))
+
+
+def reproject_heights(src: RasterSource, grid: SceneGrid) -> np.ndarray:
+    """A height raster on the grid (NaN where unknown); ``max`` when downsampling."""
+    from rasterio.warp import Resampling, reproject
+
+    native = native_gsd_m(src, grid.origin)
+    resampling = Resampling.max if grid.gsd_m > native * 1.01 else Resampling.bilinear
+    out = np.full((grid.height, grid.width), np.nan, np.float32)
+    data = src.data[0].astype(np.float32)
+    factor = _vertical_unit_factor(src)
+    reproject(data * factor, out, src_transform=src.transform, src_crs=src.crs,
+              src_nodata=np.nan, dst_transform=grid.transform, dst_crs=grid.crs,
+              dst_nodata=np.nan, resampling=resampling, num_threads=2)
+    return out
+
+
+def _vertical_unit_factor(src: RasterSource) -> float:
+    # Heights in a feet-based projected CRS are normally in feet too.
+    try:
+        crs = parse_crs(src.crs.to_wkt())
+        if crs.is_projected:
+            factor = crs.axis_info[0].unit_conversion_factor
+            return float(factor or 1.0)
+    except Exception:  # noqa: BLE001 - fall back to metres
+        log.debug("could not read the vertical unit of %s", src.info.get("file"))
+    return 1.0
+
+
+def heights_above_ground(dsm_abs: np.ndarray, ground_alt_m: float | None,
+                         dem: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    """Absolute surface heights -> height above ground; also returns the ground used.
+
+    The ground is the DEM per pixel, else ``ground_alt_m``, else the 2nd
+    percentile of the valid DSM (flat-ground estimate, logged).
+    """
+    valid = np.isfinite(dsm_abs)
+    if not valid.any():
+        raise NoOverlap("the DSM has no valid height on the scene grid; does it overlap?")
+    if dem is not None:
+        ground = dem
+        ground_ref = float(np.nanmedian(dem))
+    else:
+        if ground_alt_m is None:
+            ground_alt_m = float(np.percentile(dsm_abs[valid], 2))
+            log.info("ground level estimated from the DSM: %.2f m", ground_alt_m)
+        ground, ground_ref = ground_alt_m, ground_alt_m
+    height = np.where(valid, np.maximum(dsm_abs - ground, 0.0), np.nan).astype(np.float32)
+    return height, ground_ref
+
+
+def check_coverage(scene: Scene, *, obs_size_px: int = 84, fov_deg: float = 90.0) -> list[str]:
+    """Warnings for imagery too coarse for 15 m views or too small for 300 m views."""
+    messages = []
+    need_gsd = 2 * MIN_ALT_M * math.tan(math.radians(fov_deg) / 2) / obs_size_px
+    if scene.gsd_m > need_gsd * 1.001:
+        messages.append(
+            f"imagery at {scene.gsd_m:.3f} m/px is {scene.gsd_m / need_gsd:.2f}x coarser than "
+            f"the {need_gsd:.3f} m/px an {obs_size_px} px view at {MIN_ALT_M:.0f} m needs; "
+            "low-altitude views will be blurred")
+    need_m = 2 * MAX_ALT_M * math.tan(math.radians(fov_deg) / 2) + META_TASK_SIZE_M
+    side = min(scene.size_m)
+    if side < need_m:
+        messages.append(
+            f"the scene is {side:.0f} m across, {need_m - side:.0f} m short of the {need_m:.0f} m "
+            f"a {META_TASK_SIZE_M:.0f} m task needs with its {MAX_ALT_M:.0f} m view margin")
+    return messages
+
+
+def ingest(
+    sources: Sequence[str | os.PathLike[str] | RasterSource],
+    *,
+    name: str,
+    out: str | os.PathLike[str],
+    dsm: str | os.PathLike[str] | RasterSource | None = None,
+    dem: str | os.PathLike[str] | RasterSource | None = None,
+    ground_alt_m: float | None = None,
+    gsd_m: float | None = None,
+    origin: LonLat | None = None,
+    bbox_lonlat: tuple[float, float, float, float] | None = None,
+    attribution: str = "",
+    overwrite: bool = False,
+    compress: str = "JPEG",
+    extra_manifest: dict[str, Any] | None = None,
+    progress: Progress | None = None,
+) -> Scene:
+    """Turn source imagery (and an optional surface model) into a scene package.
+
+    Args:
+        sources: GeoTIFF paths or in-memory sources, mosaicked in order (first wins).
+        name: scene name, e.g. "A".
+        out: the package folder to write (atomically).
+        dsm: a raster of absolute surface heights (buildings, trees), any CRS.
+        dem: a raster of ground heights; default: ``ground_alt_m`` or an estimate.
+        ground_alt_m: the ground height AMSL when there is no DEM.
+        gsd_m: the scene GSD; default: the finest the sources support.
+        origin: the scene origin; default: the centre of the sources (or bbox).
+        bbox_lonlat: (west, south, east, north) to cut the scene to.
+        attribution: the licence/attribution text the user holds for the imagery.
+        overwrite: replace an existing package.
+        compress: ortho compression, "JPEG" or "DEFLATE".
+        extra_manifest: more provenance for ``scene.json`` (e.g. synthetic parameters).
+        progress: callback (phase, fraction).
+
+    Returns:
+        The written scene (also opened-equivalent: arrays in memory).
+    """
+    out = Path(out)
+    if out.exists() and not overwrite:
+        raise IngestError(f"{out} exists; use --force to replace it")
+    if not name or "/" in name:
+        raise IngestError(f"scene name {name!r} must be a non-empty name without '/'")
+    rasters = [s if isinstance(s, RasterSource) else open_raster(s, bands=3) for s in sources]
+    if progress:
+        progress("read", 1.0)
+    grid = plan_grid(rasters, gsd_m=gsd_m, origin=origin, bbox_lonlat=bbox_lonlat)
+    rgb, mask, resampling = reproject_rgb(rasters, grid, progress)
+    heights = None
+    ground_ref = origin.alt_m if origin is not None else 0.0
+    dsm_info = None
+    if dsm is not None:
+        dsm_src = dsm if isinstance(dsm, RasterSource) else open_raster(dsm, bands=1)
+        dsm_abs = reproject_heights(dsm_src, grid)
+        if not np.isfinite(dsm_abs).any():
+            raise NoOverlap(f"the DSM {dsm_src.info.get('file', '')} does not overlap the "
+                            "imagery; check its CRS and extent")
+        dem_grid = None
+        if dem is not None:
+            dem_src = dem if isinstance(dem, RasterSource) else open_raster(dem, bands=1)
+            dem_grid = reproject_heights(dem_src, grid)
+            if not np.isfinite(dem_grid).any():
+                raise NoOverlap("the DEM does not overlap the imagery")
+        heights, ground_ref = heights_above_ground(dsm_abs, ground_alt_m, dem_grid)
+        dsm_info = {k: v for k, v in dsm_src.info.items() if k != "path"}
+        if progress:
+            progress("dsm", 1.0)
+    scene_origin = LonLat(grid.origin.lon_deg, grid.origin.lat_deg,
+                          float(ground_ref if origin is None else origin.alt_m))
+    scene = Scene(name, rgb, mask, grid.gsd_m, grid.transform, scene_origin, heights)
+    scene.manifest = dict(
+        sources=[{k: v for k, v in s.info.items() if k != "path"} | dict(
+            native_gsd_m=round(native_gsd_m(s, grid.origin), 4)) for s in rasters],
+        dsm_source=dsm_info,
+        ground_alt_m=ground_ref,
+        resampling=resampling,
+        attribution=attribution,
+        mask_fraction=float(mask.mean()),
+        **(extra_manifest or {}),
+    )
+    for message in check_coverage(scene):
+        warnings.warn(f"scene {name}: {message}", GeonavWarning, stacklevel=2)
+    scene.save(out, overwrite=overwrite, compress=compress)
+    if progress:
+        progress("write", 1.0)
+    return scene
+
+
+#: Default origins of the built-in synthetic scenes (lon, lat, ground alt AMSL m).
+SYNTH_ORIGINS: dict[str, LonLat] = {
+    "residential": LonLat(4.4777, 51.9244, 2.0),
+    "campus": LonLat(-84.3963, 33.7756, 290.0),
+    "wild": LonLat(8.2275, 46.8182, 540.0),
+}
+
+
+def ingest_synthetic(
+    kind: str,
+    *,
+    out: str | os.PathLike[str],
+    name: str | None = None,
+    size_m: float = 1200.0,
+    gsd_m: float = 0.25,
+    seed: int = 0,
+    origin: LonLat | None = None,
+    overwrite: bool = False,
+    keep_sources: str | os.PathLike[str] | None = None,
+    progress: Progress | None = None,
+) -> Scene:
+    """Synthesise a scene, write it as real GeoTIFFs in EPSG:3857, and ingest those.
+
+    The image and a DSM of absolute heights (ground + objects) are written the
+    way web imagery arrives (Web-Mercator, north-up), then go through
+    :func:`ingest` exactly like a user's files.
+
+    Args:
+        kind: "residential" (scene A), "campus" (scene B) or "wild".
+        out: the package folder.
+        name: scene name (default: the kind).
+        size_m: side of the square scene in metres.
+        gsd_m: ground sample distance in metres per pixel.
+        seed: generator seed (same seed, same scene).
+        origin: scene centre (default: a fixed place per kind).
+        overwrite: replace an existing package.
+        keep_sources: a folder to keep the two source GeoTIFFs in.
+        progress: callback (phase, fraction).
+    """
+    import tempfile
+
+    import rasterio
+    from pyproj import Proj, Transformer
+
+    from geonav.tiles.synth import synthesize
+
+    origin = origin or SYNTH_ORIGINS.get(kind, LonLat(0.0, 45.0, 0.0))
+    image = synthesize(kind, size_m=size_m, gsd_m=gsd_m, seed=seed,
+                       progress=(lambda f: progress("synthesise", f)) if progress else None)
+    mx, my = Transformer.from_crs("EPSG:4326", "EPSG:3857", always_xy=True).transform(
+        origin.lon_deg, origin.lat_deg)
+    # Web-Mercator metres per ground metre at the origin (about 1/cos(lat)).
+    scale = Proj("EPSG:3857").get_factors(origin.lon_deg, origin.lat_deg).meridional_scale
+    res = gsd_m * scale
+    h, w = image.rgb.shape[:2]
+    transform = Affine(res, 0.0, mx - w * res / 2, 0.0, -res, my + h * res / 2)
+    folder = Path(keep_sources) if keep_sources else Path(tempfile.mkdtemp(prefix="geonav-synth-"))
+    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        ortho_path, dsm_path = folder / f"{kind}-{seed}-3857.tif", folder / f"{kind}-{seed}-dsm.tif"
+        common = dict(driver="GTiff", width=w, height=h, crs="EPSG:3857", transform=transform,
+                      tiled=True, compress="DEFLATE")
+        with rasterio.open(ortho_path, "w", count=3, dtype="uint8", **common) as dst:
+            dst.write(np.moveaxis(image.rgb, 2, 0))
+        with rasterio.open(dsm_path, "w", count=1, dtype="float32", nodata=float("nan"),
+                           **common) as dst:
+            dst.write((image.height_m + origin.alt_m).astype(np.float32), 1)
+        return ingest(
+            [ortho_path], name=name or kind, out=out, dsm=dsm_path, ground_alt_m=origin.alt_m,
+            gsd_m=gsd_m, origin=origin, overwrite=overwrite, progress=progress,
+            attribution="synthetic scene generated by geonav (no third-party imagery)",
+            extra_manifest=dict(synthetic=dict(kind=kind, seed=seed, size_m=size_m,
+                                               gsd_m=gsd_m)),
+        )
+    finally:
+        if not keep_sources:
+            import shutil
+
+            shutil.rmtree(folder, ignore_errors=True)
