@@ -1,0 +1,50 @@
+"""``geonav tasks make``: cut a scene into navigation tasks (JSON)."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    tasks = sub.add_parser("tasks", help="make navigation task sets")
+    tsub = tasks.add_subparsers(dest="tasks_command", metavar="TASKS_COMMAND")
+    tasks.set_defaults(handler=lambda args: tasks.print_help() or 0)
+    p = tsub.add_parser("make", help="meta-tasks (regions at 300 m) or whole-scene tasks")
+    p.add_argument("scene", help="scene package folder")
+    p.add_argument("--kind", choices=["meta", "scene"], default="meta",
+                   help="meta: COUNT regions of SIZE m at ALT; scene: one task per altitude")
+    p.add_argument("--count", type=int, default=15, help="meta-tasks to sample (default 15)")
+    p.add_argument("--size", type=float, help="region side in metres (meta default 150; "
+                   "scene default: the whole scene less the view margin)")
+    p.add_argument("--alt", type=float, default=300.0, help="meta-task altitude (default 300)")
+    p.add_argument("--alts", default="75,45,15", help="whole-scene altitudes (default 75,45,15)")
+    p.add_argument("--step", type=float, default=15.0, help="lattice step in metres (default 15)")
+    p.add_argument("--max-steps", type=int, help="episode cap (default: meta 70, scene 120)")
+    p.add_argument("--obs-size", type=int, default=84, help="camera image side in px")
+    p.add_argument("--fov", type=float, default=90.0, help="camera field of view in degrees")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("-o", "--out", required=True, help="task set JSON to write")
+    p.set_defaults(handler=run_make)
+
+
+def run_make(args: argparse.Namespace) -> int:
+    from geonav.camera import Camera
+    from geonav.scene import Scene
+    from geonav.tasks import sample_meta_tasks, whole_scene_tasks
+
+    scene = Scene.open(args.scene)
+    camera = Camera(args.obs_size, args.fov)
+    if args.kind == "meta":
+        ts = sample_meta_tasks(scene, args.count, size_m=args.size or 150.0, alt_m=args.alt,
+                               step_m=args.step, max_steps=args.max_steps or 70, seed=args.seed,
+                               camera=camera)
+    else:
+        alts = [float(a) for a in args.alts.split(",")]
+        ts = whole_scene_tasks(scene, alts, step_m=args.step, max_steps=args.max_steps or 120,
+                               seed=args.seed, size_m=args.size, camera=camera)
+    ts.save(args.out)
+    t = ts.tasks[0]
+    nx, ny = t.lattice.shape
+    print(f"{len(ts)} {args.kind} task(s) on scene {scene.name}: {nx}x{ny} cells of "
+          f"{t.step_m:g} m at {', '.join(f'{x.alt_m:g}' for x in ts.tasks[:4])} m -> {args.out}")
+    return 0

@@ -1,0 +1,105 @@
+"""``geonav tiles ...``: ingest imagery into scene packages and inspect them."""
+
+from __future__ import annotations
+
+import argparse
+import warnings
+from pathlib import Path
+
+from geonav.errors import ConfigError
+from geonav.geo import LonLat
+
+
+def parse_lonlat(text: str) -> LonLat:
+    """'lon,lat[,alt]' -> LonLat."""
+    try:
+        parts = [float(v) for v in text.split(",")]
+    except ValueError as err:
+        raise ConfigError(f"expected lon,lat[,alt] in degrees, got {text!r}") from err
+    if len(parts) not in (2, 3):
+        raise ConfigError(f"expected lon,lat[,alt] in degrees, got {text!r}")
+    return LonLat(*parts)
+
+
+def parse_bbox(text: str) -> tuple[float, float, float, float]:
+    """'west,south,east,north' in degrees."""
+    try:
+        w, s, e, n = (float(v) for v in text.split(","))
+    except ValueError as err:
+        raise ConfigError(f"expected west,south,east,north in degrees, got {text!r}") from err
+    return w, s, e, n
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    tiles = sub.add_parser("tiles", help="ingest imagery into scene packages, inspect scenes")
+    tsub = tiles.add_subparsers(dest="tiles_command", metavar="TILES_COMMAND")
+    tiles.set_defaults(handler=lambda args: tiles.print_help() or 0)
+
+    p = tsub.add_parser("ingest", help="GeoTIFF(s) in any CRS -> scene package")
+    p.add_argument("sources", nargs="+", help="GeoTIFF/COG files (mosaicked, first wins)")
+    p.add_argument("--name", required=True, help="scene name, e.g. A")
+    p.add_argument("--out", required=True, help="scene package folder to write")
+    p.add_argument("--dsm", help="surface model raster of absolute heights (any CRS)")
+    p.add_argument("--dem", help="ground height raster (default: --ground-alt or estimated)")
+    p.add_argument("--ground-alt", type=float, help="ground height AMSL in metres")
+    p.add_argument("--gsd", type=float, help="scene GSD in m/px (default: the sources' finest)")
+    p.add_argument("--bbox", type=parse_bbox, help="cut to west,south,east,north (degrees)")
+    p.add_argument("--origin", type=parse_lonlat, help="scene origin lon,lat[,alt]")
+    p.add_argument("--attribution", default="", help="licence/attribution text you hold")
+    p.add_argument("--compress", default="JPEG", choices=["JPEG", "DEFLATE"])
+    p.add_argument("--force", action="store_true", help="replace an existing package")
+    p.set_defaults(handler=run_ingest)
+
+    p = tsub.add_parser("synth", help="synthesise a scene (GeoTIFF in EPSG:3857 + DSM), ingest it")
+    p.add_argument("--kind", default="residential", choices=["residential", "campus", "wild"])
+    p.add_argument("--name", help="scene name (default: the kind)")
+    p.add_argument("--out", required=True, help="scene package folder to write")
+    p.add_argument("--size", type=float, default=1200.0, help="side in metres (default 1200)")
+    p.add_argument("--gsd", type=float, default=0.25, help="m/px (default 0.25)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--origin", type=parse_lonlat, help="scene centre lon,lat[,alt]")
+    p.add_argument("--keep-sources", help="folder to keep the generated GeoTIFFs in")
+    p.add_argument("--force", action="store_true", help="replace an existing package")
+    p.set_defaults(handler=run_synth)
+
+    try:
+        from geonav.tiles import cli_more
+    except ModuleNotFoundError as err:
+        if err.name != "geonav.tiles.cli_more":
+            raise
+    else:
+        cli_more.add_parsers(tsub)
+
+
+def _report(scene, out: Path) -> None:
+    w, h = scene.size_m
+    print(f"scene {scene.name}: {scene.width}x{scene.height} px at {scene.gsd_m:g} m/px "
+          f"({w:.0f} x {h:.0f} m), origin {scene.origin.lon_deg:.6f},"
+          f"{scene.origin.lat_deg:.6f} -> {out}")
+
+
+def run_ingest(args: argparse.Namespace) -> int:
+    from geonav.cli import progress_bar
+    from geonav.tiles.ingest import ingest
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        scene = ingest(args.sources, name=args.name, out=args.out, dsm=args.dsm, dem=args.dem,
+                       ground_alt_m=args.ground_alt, gsd_m=args.gsd, origin=args.origin,
+                       bbox_lonlat=args.bbox, attribution=args.attribution,
+                       overwrite=args.force, compress=args.compress,
+                       progress=progress_bar("ingest"))
+    _report(scene, Path(args.out))
+    return 0
+
+
+def run_synth(args: argparse.Namespace) -> int:
+    from geonav.cli import progress_bar
+    from geonav.tiles.ingest import ingest_synthetic
+
+    scene = ingest_synthetic(args.kind, out=args.out, name=args.name, size_m=args.size,
+                             gsd_m=args.gsd, seed=args.seed, origin=args.origin,
+                             overwrite=args.force, keep_sources=args.keep_sources,
+                             progress=progress_bar("synth"))
+    _report(scene, Path(args.out))
+    return 0

@@ -1,0 +1,95 @@
+"""Pictures of scenes, tasks, camera footprints and tracks (matplotlib, Agg)."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from geonav.camera import Camera
+from geonav.scene import Scene
+from geonav.tasks import Cell, NavTask, TaskSet
+
+FOOTPRINT_ALTS_M = (300.0, 75.0, 45.0, 15.0)
+
+
+def draw_scene(
+    scene: Scene,
+    out: str | os.PathLike[str],
+    *,
+    tasks: TaskSet | Sequence[NavTask] | None = None,
+    tracks: Sequence[tuple[NavTask, Sequence[Cell], str]] = (),
+    footprints_at: Sequence[float] = FOOTPRINT_ALTS_M,
+    camera: Camera | None = None,
+    title: str | None = None,
+    max_px: int = 1600,
+) -> Path:
+    """Draw the scene with task regions, targets, camera footprints and tracks to a PNG.
+
+    Args:
+        scene: the scene.
+        out: PNG path.
+        tasks: task regions (rectangles) and targets (stars) to draw.
+        tracks: (task, cells visited, label) triples drawn as lines on the lattice.
+        footprints_at: altitudes whose camera footprints are drawn around the first
+            task's target (or the scene centre).
+        camera: the camera (footprint sizes).
+        title: figure title.
+        max_px: the scene image is downsampled to at most this many pixels across.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Rectangle
+
+    camera = camera or (tasks.camera if isinstance(tasks, TaskSet) else Camera())
+    task_list = list(tasks.tasks if isinstance(tasks, TaskSet) else (tasks or []))
+    step = max(1, int(np.ceil(max(scene.width, scene.height) / max_px)))
+    xmin, ymin, xmax, ymax = scene.bounds_m
+    fig, ax = plt.subplots(figsize=(9, 9 * scene.height / scene.width + 0.6), dpi=120)
+    ax.imshow(scene.rgb[::step, ::step], extent=(xmin, xmax, ymin, ymax), interpolation="none")
+    if scene.dsm is not None and footprints_at:
+        tall = scene.dsm >= min(footprints_at) - 5.0
+        if tall.any():
+            ys, xs = np.nonzero(tall[::step * 4, ::step * 4])
+            ax.scatter(xmin + (xs + 0.5) * step * 4 * scene.gsd_m,
+                       ymax - (ys + 0.5) * step * 4 * scene.gsd_m, s=1, c="magenta",
+                       alpha=0.25, label=f"surface > {min(footprints_at) - 5:g} m")
+    colours = plt.cm.tab20(np.linspace(0, 1, max(1, len(task_list))))
+    for task, colour in zip(task_list, colours):
+        x0, y0, x1, y1 = task.region_m
+        ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, lw=1.2, ec=colour))
+        tgt = task.lattice.center(task.target_cell)
+        ax.plot(tgt.x_m, tgt.y_m, marker="*", ms=11, mec="black", mfc=colour)
+        ax.text(x0, y1, f" {task.name}", color=colour, fontsize=7, va="bottom")
+    centre = (task_list[0].lattice.center(task_list[0].target_cell) if task_list
+              else None)
+    cx, cy = (centre.x_m, centre.y_m) if centre else ((xmin + xmax) / 2, (ymin + ymax) / 2)
+    for alt, style in zip(footprints_at, ("-", "--", "-.", ":")):
+        side = camera.footprint_m(alt)
+        ax.add_patch(Rectangle((cx - side / 2, cy - side / 2), side, side, fill=False,
+                               ls=style, lw=1.0, ec="white"))
+        ax.text(cx - side / 2, cy + side / 2, f"{alt:g} m view", color="white", fontsize=7,
+                va="bottom")
+    for task, cells, label in tracks:
+        pts = np.array([[task.lattice.center(c).x_m, task.lattice.center(c).y_m] for c in cells])
+        if len(pts):
+            ax.plot(pts[:, 0], pts[:, 1], "-o", ms=2.5, lw=1.5, label=label)
+            ax.plot(*pts[0], "s", ms=7, mfc="lime", mec="black")
+    ax.set_xlim(xmin, xmax)
+    ax.set_ylim(ymin, ymax)
+    ax.set_xlabel("x east (m)")
+    ax.set_ylabel("y north (m)")
+    ax.set_title(title or f"scene {scene.name}: {scene.width}x{scene.height} px at "
+                 f"{scene.gsd_m:g} m/px")
+    if tracks or (scene.dsm is not None and footprints_at):
+        ax.legend(loc="lower right", fontsize=7)
+    fig.tight_layout()
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out)
+    plt.close(fig)
+    return out
