@@ -223,6 +223,15 @@ class TaskMap:
         ok = (self.dist_to_target > 0) & (self.dist_to_target <= cap)
         return [(int(x), int(y)) for x, y in zip(*np.nonzero(ok))]
 
+    def shortest_path_action(self, cell: Cell) -> int:
+        """An action that moves one step closer to the target (the BFS oracle)."""
+        d = self.dist_to_target[cell]
+        for a, (dx, dy) in enumerate(ACTION_MOVES):
+            nxt = (cell[0] + dx, cell[1] + dy)
+            if self.lattice.contains(nxt) and 0 <= self.dist_to_target[nxt] < d:
+                return a
+        raise TaskError(f"no move from {cell} gets closer to target {self.task.target_cell}")
+
 
 def view_margin_m(alt_m: float, camera: Camera) -> float:
     """Half the camera footprint: how far imagery must extend around a region."""

@@ -1,0 +1,129 @@
+import numpy as np
+import pytest
+
+from geonav.camera import Camera
+from geonav.errors import TaskError
+from geonav.tasks import (
+    Lattice,
+    NavTask,
+    TaskSet,
+    bfs_distances,
+    bind,
+    blocked_cells,
+    sample_meta_tasks,
+    whole_scene_tasks,
+)
+from geonav.testing import textured_scene
+
+
+def test_lattice_geometry():
+    lat = Lattice((-30.0, -15.0, 30.0, 15.0), 15.0)
+    assert lat.shape == (4, 2)
+    assert lat.center((0, 0)).x_m == -22.5 and lat.center((3, 1)).y_m == 7.5
+    assert lat.cell_of(lat.center((2, 1))) == (2, 1)
+    assert not lat.contains((4, 0)) and lat.contains((3, 1))
+    with pytest.raises(TaskError):
+        Lattice((0, 0, 10, 10), 15.0)
+
+
+def test_bfs_goes_around_walls():
+    blocked = np.zeros((5, 5), bool)
+    blocked[2, 0:4] = True  # wall at ix=2, gap at iy=4
+    d = bfs_distances(blocked, (0, 0))
+    assert d[4, 0] == 4 + 2 * 4  # up to iy=4, across, back down
+    assert d[2, 2] == -1
+    blocked[2, 4] = True
+    assert bfs_distances(blocked, (0, 0))[4, 0] == -1
+
+
+def test_obstacles_follow_altitude(scene):
+    lat = Lattice((-150.0, -150.0, 150.0, 150.0), 15.0)
+    counts = {alt: int(blocked_cells(scene, lat, alt).sum()) for alt in (75, 45, 15)}
+    # towers are 60 m, houses 12 m; clearance 5 m
+    assert counts[75] == 0
+    assert 0 < counts[45] < counts[15]
+    # every cell blocked at 45 m has a tower (>40 m) within the safety radius
+    b45 = blocked_cells(scene, lat, 45)
+    for ix, iy in np.argwhere(b45):
+        p = lat.center((int(ix), int(iy)))
+        col, row = scene.to_pixel(p.x_m, p.y_m)
+        r = int(3.0 / scene.gsd_m) + 1
+        patch = scene.dsm[int(row) - r:int(row) + r + 1, int(col) - r:int(col) + r + 1]
+        assert patch.max() > 40.0
+
+
+def test_no_dsm_no_obstacles(flat_scene):
+    lat = Lattice((-60.0, -60.0, 60.0, 60.0), 15.0)
+    assert not blocked_cells(flat_scene, lat, 15).any()
+
+
+def test_bind_errors(scene):
+    cam = Camera()
+    ok = NavTask("t", "meta", (-30, -30, 30, 30), 15.0, 75.0, (0, 0))
+    bind(ok, scene, cam)
+    with pytest.raises(TaskError, match="outside scene"):
+        bind(NavTask("t", "meta", (150, 150, 250, 250), 15.0, 75.0, (0, 0)), scene, cam)
+    with pytest.raises(TaskError, match="needs 300 m of imagery"):
+        bind(NavTask("t", "meta", (-30, -30, 30, 30), 15.0, 300.0, (0, 0)), scene, cam)
+    with pytest.raises(TaskError, match="outside the"):
+        bind(NavTask("t", "meta", (-30, -30, 30, 30), 15.0, 75.0, (9, 9)), scene, cam)
+    lat = Lattice((-150.0, -150.0, 150.0, 150.0), 15.0)
+    blocked = np.argwhere(blocked_cells(scene, lat, 15.0))
+    cell = (int(blocked[0][0]), int(blocked[0][1]))
+    with pytest.raises(TaskError, match="is an obstacle at 15 m"):
+        bind(NavTask("t", "scene", lat.region_m, 15.0, 15.0, cell), scene, cam)
+
+
+def test_unreachable_target():
+    s = textured_scene(300.0, 0.5, seed=2, towers=False)
+    s.dsm[:] = 0
+    # a ring of 30 m walls around the centre cell of a 5x5 lattice of 10 m
+    rows, cols = s.dsm.shape
+    c = cols // 2
+    s.dsm[c - 30:c + 30, c - 30:c + 30] = 30.0  # walls from 5 m to 15 m off the centre
+    s.dsm[c - 10:c + 10, c - 10:c + 10] = 0.0
+    task = NavTask("t", "scene", (-25, -25, 25, 25), 10.0, 15.0, (2, 2),
+                   obstacles=__import__("geonav.tasks").tasks.ObstacleModel(1.0, 5.0))
+    with pytest.raises(TaskError, match="unreachable"):
+        bind(task, s, Camera())
+
+
+def test_meta_tasks_reproducible_with_margin(tmp_path):
+    s = textured_scene(1000.0, 1.0, seed=4)
+    a = sample_meta_tasks(s, 4, size_m=150, alt_m=300, step_m=15, seed=7)
+    b = sample_meta_tasks(s, 4, size_m=150, alt_m=300, step_m=15, seed=7)
+    assert a.to_dict() == b.to_dict()
+    assert sample_meta_tasks(s, 4, seed=8).to_dict() != a.to_dict()
+    for t in a.tasks:
+        x0, y0, x1, y1 = t.region_m
+        assert x1 - x0 == 150 and t.lattice.shape == (10, 10)
+        assert x0 - 300 >= s.bounds_m[0] and x1 + 300 <= s.bounds_m[2]
+        assert x0 % s.gsd_m == pytest.approx(0) or x0 % s.gsd_m == pytest.approx(s.gsd_m)
+    path = a.save(tmp_path / "t.json")
+    c = TaskSet.load(path)
+    assert c.to_dict() == a.to_dict()
+    c.check_scene(s)
+    with pytest.raises(TaskError, match="made for scene"):
+        c.check_scene(textured_scene(1000.0, 1.0, seed=4, name="other"))
+    with pytest.raises(TaskError, match="needs 750 m"):
+        sample_meta_tasks(textured_scene(400.0, 1.0), 2)
+
+
+def test_whole_scene_tasks_share_lattice_and_target():
+    s = textured_scene(500.0, 0.5, seed=5)
+    ts = whole_scene_tasks(s, (75, 45, 15), step_m=15, seed=1)
+    assert [t.alt_m for t in ts.tasks] == [75, 45, 15]
+    assert len({(t.region_m, t.target_cell) for t in ts.tasks}) == 1
+    assert ts.tasks[0].region_m[0] - 75 >= s.bounds_m[0] - 1e-6
+    assert all(t.max_steps == 120 for t in ts.tasks)
+
+
+def test_taskset_file_errors(tmp_path):
+    with pytest.raises(TaskError, match="does not exist"):
+        TaskSet.load(tmp_path / "none.json")
+    (tmp_path / "bad.json").write_text("[1, 2")
+    with pytest.raises(TaskError, match="not valid JSON"):
+        TaskSet.load(tmp_path / "bad.json")
+    (tmp_path / "old.json").write_text('{"schema_version": 0}')
+    with pytest.raises(TaskError, match="schema_version"):
+        TaskSet.load(tmp_path / "old.json")
