@@ -142,10 +142,12 @@ class PymavlinkVehicle:
                 log.warning("MAVLink send %s failed: %s", fn_name, err)
 
     def _heartbeat_loop(self) -> None:
-        while not self._stop.wait(0.0 if self._hb is None and time.monotonic() - self._t0 < 0.05 else 1.0):
+        while True:
             self._send(
                 "heartbeat_send", M.MAV_TYPE_ONBOARD_CONTROLLER, M.MAV_AUTOPILOT_INVALID, 0, 0, 0
             )
+            if self._stop.wait(1.0):
+                return
 
     def _recv_loop(self) -> None:
         while not self._stop.is_set():

@@ -1,0 +1,132 @@
+"""The flight record: JSON lines of every step and event, and a PNG of the track.
+
+``flight.jsonl`` holds one object per line, each with a ``kind``:
+``header`` (settings, scene, origin, lattice), ``step`` (time, action,
+target in scene metres and NED, measured position, arrival time, frame
+latency, safety events), ``event`` and ``result``. ``track.png`` shows the
+scene image, the lattice cells, the fence, the flown track, the start and
+the target.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+
+class FlightRecorder:
+    """Writes ``flight.jsonl`` into ``out_dir`` as the flight goes.
+
+    Args:
+        out_dir: folder for the record (created).
+    """
+
+    def __init__(self, out_dir: str | Path) -> None:
+        self.out_dir = Path(out_dir)
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        self.path = self.out_dir / "flight.jsonl"
+        self._f = self.path.open("w", encoding="utf-8")
+        self._t0 = time.monotonic()
+        self.track_xy: list[tuple[float, float]] = []
+        self.steps: list[dict[str, Any]] = []
+        self.events: list[str] = []
+
+    def elapsed_s(self) -> float:
+        """Seconds since the record started."""
+        return time.monotonic() - self._t0
+
+    def write(self, kind: str, **data: Any) -> None:
+        """Append one JSON line."""
+        row = {"kind": kind, "t_s": round(self.elapsed_s(), 3), **data}
+        self._f.write(json.dumps(row, default=_jsonable) + "\n")
+        self._f.flush()
+        if kind == "step":
+            self.steps.append(row)
+
+    def event(self, text: str) -> None:
+        """Record a safety or phase event."""
+        self.events.append(text)
+        self.write("event", text=text)
+
+    def sample(self, x_m: float, y_m: float) -> None:
+        """A measured scene position for the track plot."""
+        self.track_xy.append((x_m, y_m))
+
+    def close(self) -> None:
+        """Close the JSON lines file."""
+        if not self._f.closed:
+            self._f.close()
+
+    def plot(
+        self,
+        scene: Any,
+        lattice: Any | None,
+        start: tuple[float, float] | None,
+        target: tuple[float, float] | None,
+        fence: Any | None = None,
+    ) -> Path:
+        """Write ``track.png``: scene, lattice, fence, track, start and target."""
+        import matplotlib
+
+        matplotlib.use("Agg", force=False)
+        import matplotlib.pyplot as plt
+
+        xmin, ymin, xmax, ymax = scene.bounds_m
+        fig, ax = plt.subplots(figsize=(7, 7), dpi=100)
+        ax.imshow(scene.rgb, extent=(xmin, xmax, ymin, ymax), origin="upper")
+        if lattice is not None:
+            lx0, ly0, _, _ = lattice.region_m
+            nx, ny = lattice.shape
+            step = lattice.step_m
+            for i in range(nx + 1):
+                ax.plot([lx0 + i * step] * 2, [ly0, ly0 + ny * step], color="w", lw=0.5, alpha=0.6)
+            for j in range(ny + 1):
+                ax.plot([lx0, lx0 + nx * step], [ly0 + j * step] * 2, color="w", lw=0.5, alpha=0.6)
+        if fence is not None:
+            ax.plot(
+                [fence.xmin_m, fence.xmax_m, fence.xmax_m, fence.xmin_m, fence.xmin_m],
+                [fence.ymin_m, fence.ymin_m, fence.ymax_m, fence.ymax_m, fence.ymin_m],
+                color="orange", lw=1.5, ls="--", label="geofence",
+            )
+        if self.track_xy:
+            xy = np.asarray(self.track_xy)
+            ax.plot(xy[:, 0], xy[:, 1], color="red", lw=1.5, label="flown track")
+        targets = [s["target_scene"] for s in self.steps if s.get("target_scene")]
+        if targets:
+            t = np.asarray(targets)
+            ax.scatter(t[:, 0], t[:, 1], s=12, color="yellow", zorder=3, label="step targets")
+        if start is not None:
+            ax.scatter([start[0]], [start[1]], marker="o", s=80, color="cyan", zorder=4, label="start")
+        if target is not None:
+            ax.scatter([target[0]], [target[1]], marker="*", s=200, color="lime", zorder=4, label="target")
+        ax.set_xlabel("x east (m)")
+        ax.set_ylabel("y north (m)")
+        ax.set_title(f"geonav flight over {getattr(scene, 'name', 'scene')}")
+        ax.legend(loc="upper right", fontsize=8)
+        png = self.out_dir / "track.png"
+        fig.savefig(png, bbox_inches="tight")
+        plt.close(fig)
+        return png
+
+
+def read_record(path: str | Path) -> list[dict[str, Any]]:
+    """All rows of a ``flight.jsonl``."""
+    with Path(path).open(encoding="utf-8") as f:
+        return [json.loads(line) for line in f if line.strip()]
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if hasattr(value, "__dataclass_fields__"):
+        return {k: getattr(value, k) for k in value.__dataclass_fields__}
+    return str(value)

@@ -1,0 +1,272 @@
+"""Flight phases on top of a Vehicle, each gated on telemetry with a timeout.
+
+Connect -> heartbeat in STANDBY -> telemetry requested -> EKF origin and
+position known -> home inside the fence -> take-off (PX4: stream setpoints,
+OFFBOARD, arm, climb by setpoint; ArduPilot: GUIDED, arm, NAV_TAKEOFF within
+the auto-disarm delay) -> ... -> LAND or RTL -> disarmed. Modes are
+re-checked on the heartbeat after every change, because an autopilot that
+is still booting can ACK a mode change and undo it.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from geonav.errors import CommandRejected, FlightError, FlightTimeout
+from geonav.geo import LocalNED, LonLat
+from geonav.mavlink_bridge import modes as M
+from geonav.mavlink_bridge.pump import SetpointPump
+from geonav.mavlink_bridge.vehicle import Vehicle, VehicleState
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Timeouts:
+    """Seconds allowed for each phase (wall clock).
+
+    Attributes:
+        connect_s: first autopilot heartbeat.
+        ready_s: HEARTBEAT system_status STANDBY (boot finished).
+        position_s: EKF origin and LOCAL_POSITION_NED present.
+        command_s: one COMMAND_ACK (split over retries).
+        mode_s: a mode change visible in the heartbeat.
+        arm_s: arming retried until this deadline (PreArm checks take ~25 s in SITL).
+        arm_retry_s: pause between arming attempts.
+        takeoff_s: reach the flight altitude.
+        landing_s: land (or return and land) and disarm.
+    """
+
+    connect_s: float = 30.0
+    ready_s: float = 60.0
+    position_s: float = 90.0
+    command_s: float = 3.0
+    mode_s: float = 5.0
+    arm_s: float = 60.0
+    arm_retry_s: float = 1.0
+    takeoff_s: float = 60.0
+    landing_s: float = 180.0
+
+
+def wait_until(
+    vehicle: Vehicle,
+    predicate: Callable[[VehicleState], bool],
+    timeout_s: float,
+    what: str,
+    poll_s: float = 0.05,
+    check: Callable[[], None] | None = None,
+) -> VehicleState:
+    """Poll the vehicle state until ``predicate`` holds.
+
+    Raises:
+        FlightTimeout: not within ``timeout_s``; the message names ``what`` and the last state.
+    """
+    deadline = time.monotonic() + timeout_s
+    while True:
+        s = vehicle.state()
+        if predicate(s):
+            return s
+        if check is not None:
+            check()
+        if time.monotonic() > deadline:
+            raise FlightTimeout(
+                f"{what}: not seen within {timeout_s:.1f} s (mode {s.mode}, armed {s.armed}, "
+                f"status {s.system_status}, position {s.position}, origin {s.origin}"
+                + (f", last autopilot text {s.last_statustext!r})" if s.last_statustext else ")")
+            )
+        time.sleep(poll_s)
+
+
+def wait_ready(vehicle: Vehicle, t: Timeouts) -> VehicleState:
+    """Wait until the autopilot left BOOT (HEARTBEAT system_status STANDBY or ACTIVE)."""
+    return wait_until(
+        vehicle,
+        lambda s: s.system_status in (M.MAV_STATE_STANDBY, M.MAV_STATE_ACTIVE),
+        t.ready_s,
+        "autopilot ready (HEARTBEAT system_status STANDBY)",
+    )
+
+
+def wait_position(vehicle: Vehicle, t: Timeouts, set_origin: LonLat | None = None) -> VehicleState:
+    """Wait for the EKF origin and LOCAL_POSITION_NED; optionally set the origin first."""
+    if set_origin is not None:
+        vehicle.set_origin(set_origin)
+    deadline = time.monotonic() + t.position_s
+    requested = time.monotonic()
+    while True:
+        s = vehicle.state()
+        if s.origin is not None and s.position is not None and s.position_age_s < 1.0:
+            return s
+        if time.monotonic() > deadline:
+            missing = "GPS_GLOBAL_ORIGIN" if s.origin is None else "LOCAL_POSITION_NED"
+            raise FlightTimeout(
+                f"no {missing} within {t.position_s:.0f} s: the vehicle has no position "
+                "estimate (GPS fix, or SET_GPS_GLOBAL_ORIGIN for GPS-less vehicles: --set-origin)"
+            )
+        if s.origin is None and time.monotonic() - requested > 2.0:
+            # Autopilots send GPS_GLOBAL_ORIGIN once when it is set; ask again.
+            requested = time.monotonic()
+            if set_origin is not None:
+                vehicle.set_origin(set_origin)
+            _request_origin(vehicle, t)
+        time.sleep(0.05)
+
+
+def _request_origin(vehicle: Vehicle, t: Timeouts) -> None:
+    request = getattr(vehicle, "request_message", None)
+    if request is None:
+        return
+    try:
+        request("GPS_GLOBAL_ORIGIN", t.command_s)
+    except FlightError as err:
+        log.debug("GPS_GLOBAL_ORIGIN request: %s", err)
+
+
+def set_mode_confirmed(
+    vehicle: Vehicle, name: str, t: Timeouts, alive: Callable[[], None] | None = None
+) -> None:
+    """Change mode, then confirm it on the heartbeat; retry a rejected or undone change.
+
+    Raises:
+        CommandRejected: the autopilot kept refusing until ``t.mode_s`` ran out.
+        FlightTimeout: accepted but never shown by the heartbeat.
+    """
+    deadline = time.monotonic() + t.mode_s
+    last: FlightError | None = None
+    while time.monotonic() < deadline:
+        if alive is not None:
+            alive()
+        try:
+            vehicle.set_mode(name, t.command_s)
+        except CommandRejected as err:
+            last = err
+            time.sleep(0.3)
+            continue
+        try:
+            wait_until(vehicle, lambda s: s.mode == name, min(1.5, t.mode_s), f"mode {name}",
+                       check=alive)
+            time.sleep(0.1)
+            if vehicle.state().mode == name:
+                return
+        except FlightTimeout as err:
+            last = err
+    if isinstance(last, CommandRejected):
+        raise CommandRejected(f"mode {name} refused for {t.mode_s:.0f} s: {last}") from last
+    raise FlightTimeout(f"mode {name} not confirmed by the heartbeat within {t.mode_s:.0f} s") from last
+
+
+def arm_with_retry(vehicle: Vehicle, t: Timeouts, alive: Callable[[], None] | None = None) -> None:
+    """Arm, retrying while pre-arm checks fail, until ``t.arm_s``.
+
+    Raises:
+        CommandRejected: never armed; the message carries the last reason.
+    """
+    deadline = time.monotonic() + t.arm_s
+    attempts = 0
+    last = ""
+    while True:
+        attempts += 1
+        if alive is not None:
+            alive()
+        try:
+            vehicle.arm(t.command_s)
+            wait_until(vehicle, lambda s: s.armed, t.mode_s, "armed state in HEARTBEAT", check=alive)
+            log.info("armed after %d attempt(s)", attempts)
+            return
+        except CommandRejected as err:
+            last = str(err)
+            log.warning("arming attempt %d refused: %s", attempts, err)
+        if time.monotonic() + t.arm_retry_s > deadline:
+            raise CommandRejected(
+                f"vehicle refused to arm for {t.arm_s:.0f} s ({attempts} attempts); last reason: {last}"
+            )
+        _sleep_alive(t.arm_retry_s, alive)
+
+
+def take_off(
+    vehicle: Vehicle,
+    pump: SetpointPump,
+    climb_target: LocalNED,
+    yaw_deg: float,
+    alt_tolerance_m: float,
+    t: Timeouts,
+) -> None:
+    """Arm and climb to ``climb_target`` (NED about the EKF origin) in the autonomy mode.
+
+    PX4: the pump streams the climb target before OFFBOARD (main mode 6), then
+    arm; the setpoint itself lifts the vehicle. ArduPilot: GUIDED (4), arm,
+    then MAV_CMD_NAV_TAKEOFF with the altitude above home straight away (it
+    disarms after DISARM_DELAY otherwise); the pump starts once airborne.
+    """
+    s = vehicle.state()
+    home_down = s.position.down_m if s.position is not None else 0.0
+    alt_above_home = home_down - climb_target.down_m
+    if vehicle.autopilot == M.PX4:
+        pump.set_target(climb_target, yaw_deg)
+        pump.start()
+        # PX4 enables OFFBOARD only after the stream ran for a while.
+        _sleep_alive(min(1.2, t.mode_s / 2), pump.tick)
+        set_mode_confirmed(vehicle, "offboard", t, alive=pump.tick)
+        arm_with_retry(vehicle, t, alive=pump.tick)
+    else:
+        set_mode_confirmed(vehicle, "guided", t)
+        arm_with_retry(vehicle, t)
+        vehicle.takeoff(alt_above_home, t.command_s)
+        pump.set_target(climb_target, yaw_deg)
+
+    def reached(st: VehicleState) -> bool:
+        return st.position is not None and abs(st.position.down_m - climb_target.down_m) < alt_tolerance_m
+
+    def guard() -> None:
+        pump.tick()
+        st = vehicle.state()
+        if not st.armed:
+            raise FlightError(f"vehicle disarmed during take-off (mode {st.mode}); last text {st.last_statustext!r}")
+        pump.raise_if_fault()
+
+    if vehicle.autopilot != M.PX4:
+        # Wait until clearly airborne before streaming position targets.
+        wait_until(
+            vehicle,
+            lambda st: st.position is not None and home_down - st.position.down_m > min(1.0, alt_above_home / 2),
+            t.takeoff_s, "climb after NAV_TAKEOFF", check=guard,
+        )
+        pump.start()
+    wait_until(vehicle, reached, t.takeoff_s, f"take-off to {alt_above_home:.1f} m", check=guard)
+
+
+def _sleep_alive(seconds: float, alive: Callable[[], None] | None) -> None:
+    end = time.monotonic() + seconds
+    while True:
+        if alive is not None:
+            alive()
+        left = end - time.monotonic()
+        if left <= 0:
+            return
+        time.sleep(min(0.1, left))
+
+
+def end_flight(vehicle: Vehicle, end: str, t: Timeouts) -> VehicleState:
+    """LAND or RTL, then wait for disarm.
+
+    Raises:
+        FlightTimeout: still armed after ``t.landing_s``.
+    """
+    s = vehicle.state()
+    if not s.armed:
+        return s
+    if end == "rtl":
+        vehicle.return_to_launch(t.command_s)
+    else:
+        vehicle.land(t.command_s)
+    log.info("%s commanded; waiting for disarm", end.upper())
+    return wait_until(vehicle, lambda st: not st.armed, t.landing_s, f"{end} and disarm", poll_s=0.1)
+
+
+def horizontal_distance_m(a: LocalNED, b: LocalNED) -> float:
+    """Horizontal distance between two NED points."""
+    return math.hypot(a.north_m - b.north_m, a.east_m - b.east_m)
