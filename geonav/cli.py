@@ -73,7 +73,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     level = logging.WARNING - 10 * min(args.verbose, 2)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
-    warnings.simplefilter("default")
+    from geonav.errors import GeonavWarning
+
+    warnings.simplefilter("default", GeonavWarning)
+    warnings.filterwarnings("ignore", category=PendingDeprecationWarning)
     if not getattr(args, "handler", None):
         parser.print_help()
         return 0

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import importlib
 import warnings
 from pathlib import Path
 
@@ -63,7 +64,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(handler=run_synth)
 
     try:
-        from geonav.tiles import cli_more
+        cli_more = importlib.import_module("geonav.tiles.cli_more")
     except ModuleNotFoundError as err:
         if err.name != "geonav.tiles.cli_more":
             raise
