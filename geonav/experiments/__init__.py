@@ -1,0 +1,1 @@
+"""Transfer experiments: configs, the runner, convergence, reports and plots."""
