@@ -36,8 +36,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     tsub = tiles.add_subparsers(dest="tiles_command", metavar="TILES_COMMAND")
     tiles.set_defaults(handler=lambda args: tiles.print_help() or 0)
 
-    p = tsub.add_parser("ingest", help="GeoTIFF(s) in any CRS -> scene package")
-    p.add_argument("sources", nargs="+", help="GeoTIFF/COG files (mosaicked, first wins)")
+    p = tsub.add_parser("ingest", help="GeoTIFFs, XYZ tile folders, MBTiles -> scene package")
+    p.add_argument("sources", nargs="+",
+                   help="GeoTIFF/COG files in any CRS, folders of {z}/{x}/{y}.png|jpg|webp "
+                   "tiles, .mbtiles files (mosaicked in order, first wins)")
+    p.add_argument("--tms", action="store_true",
+                   help="tile folders count rows from the south (TMS) instead of XYZ")
+    p.add_argument("--zoom", type=int,
+                   help="zoom level to read from tile folders/MBTiles (default: the highest)")
     p.add_argument("--name", required=True, help="scene name, e.g. A")
     p.add_argument("--out", required=True, help="scene package folder to write")
     p.add_argument("--dsm", help="surface model raster of absolute heights (any CRS)")
@@ -89,7 +95,7 @@ def run_ingest(args: argparse.Namespace) -> int:
                        ground_alt_m=args.ground_alt, gsd_m=args.gsd, origin=args.origin,
                        bbox_lonlat=args.bbox, attribution=args.attribution,
                        overwrite=args.force, compress=args.compress,
-                       progress=progress_bar("ingest"))
+                       progress=progress_bar("ingest"), tms=args.tms, zoom=args.zoom)
     _report(scene, Path(args.out))
     return 0
 

@@ -144,6 +144,38 @@ def _to_uint8(data: np.ndarray, path: Path) -> np.ndarray:
     return np.clip(np.nan_to_num(scaled), 0, 255).astype(np.uint8)
 
 
+def open_source(
+    path: str | os.PathLike[str],
+    *,
+    tms: bool = False,
+    zoom: int | None = None,
+    bbox_lonlat: tuple[float, float, float, float] | None = None,
+    progress: Progress | None = None,
+) -> RasterSource:
+    """Open any imagery source by its kind: a folder of XYZ tiles, an MBTiles file,
+    or a GDAL raster (GeoTIFF, COG, ...).
+
+    Args:
+        path: the folder or file.
+        tms: a tile folder's rows are in TMS order (counted from the south).
+        zoom: the zoom level of a tile folder or MBTiles (default: the highest).
+        bbox_lonlat: read only the tiles meeting this bbox (tile sources only).
+        progress: callback (phase, fraction).
+    """
+    path = Path(path)
+    if path.is_dir():
+        from geonav.tiles.xyz import read_xyz
+
+        return read_xyz(path, zoom=zoom, tms=tms, bbox_lonlat=bbox_lonlat, progress=progress)
+    if path.suffix.lower() == ".mbtiles":
+        from geonav.tiles.mbtiles import read_mbtiles
+
+        if tms:
+            log.info("--tms is ignored for %s: MBTiles says its own scheme", path)
+        return read_mbtiles(path, zoom=zoom, bbox_lonlat=bbox_lonlat, progress=progress)
+    return open_raster(path, bands=3)
+
+
 def native_gsd_m(src: RasterSource, origin: LonLat) -> float:
     """The source's pixel size in ground metres, measured in the scene CRS.
 
@@ -315,6 +347,17 @@ def check_coverage(scene: Scene, *, obs_size_px: int = 84, fov_deg: float = 90.0
     return messages
 
 
+def _mask_coverage(mask: np.ndarray, bbox_lonlat: tuple | None) -> list[str]:
+    # The grid hugs the sources, so a few percent of edge pixels can be empty after a
+    # reprojection; more than that means missing tiles or a bbox reaching past the data.
+    valid = float(mask.mean())
+    if valid >= 0.95:
+        return []
+    why = ("the bbox reaches beyond the imagery, or tiles are missing or corrupt"
+           if bbox_lonlat is not None else "missing or corrupt tiles, or gaps between sources")
+    return [f"only {valid:.0%} of the scene has imagery ({why}); the rest is masked"]
+
+
 def ingest(
     sources: Sequence[str | os.PathLike[str] | RasterSource],
     *,
@@ -331,11 +374,14 @@ def ingest(
     compress: str = "JPEG",
     extra_manifest: dict[str, Any] | None = None,
     progress: Progress | None = None,
+    tms: bool = False,
+    zoom: int | None = None,
 ) -> Scene:
     """Turn source imagery (and an optional surface model) into a scene package.
 
     Args:
-        sources: GeoTIFF paths or in-memory sources, mosaicked in order (first wins).
+        sources: GeoTIFF paths, XYZ tile folders, ``.mbtiles`` files or in-memory
+            sources, mosaicked in order (first wins); see :func:`open_source`.
         name: scene name, e.g. "A".
         out: the package folder to write (atomically).
         dsm: a raster of absolute surface heights (buildings, trees), any CRS.
@@ -344,11 +390,14 @@ def ingest(
         gsd_m: the scene GSD; default: the finest the sources support.
         origin: the scene origin; default: the centre of the sources (or bbox).
         bbox_lonlat: (west, south, east, north) to cut the scene to.
-        attribution: the licence/attribution text the user holds for the imagery.
+        attribution: the licence/attribution text the user holds for the imagery;
+            default: the attributions the sources carry (fetch sidecar, MBTiles metadata).
         overwrite: replace an existing package.
         compress: ortho compression, "JPEG" or "DEFLATE".
         extra_manifest: more provenance for ``scene.json`` (e.g. synthetic parameters).
         progress: callback (phase, fraction).
+        tms: tile folders among ``sources`` are in TMS row order.
+        zoom: the zoom level to read from tile folders / MBTiles (default: highest).
 
     Returns:
         The written scene (also opened-equivalent: arrays in memory).
@@ -358,11 +407,16 @@ def ingest(
         raise IngestError(f"{out} exists; use --force to replace it")
     if not name or "/" in name:
         raise IngestError(f"scene name {name!r} must be a non-empty name without '/'")
-    rasters = [s if isinstance(s, RasterSource) else open_raster(s, bands=3) for s in sources]
+    rasters = [s if isinstance(s, RasterSource) else
+               open_source(s, tms=tms, zoom=zoom, bbox_lonlat=bbox_lonlat, progress=progress)
+               for s in sources]
     if progress:
         progress("read", 1.0)
     grid = plan_grid(rasters, gsd_m=gsd_m, origin=origin, bbox_lonlat=bbox_lonlat)
     rgb, mask, resampling = reproject_rgb(rasters, grid, progress)
+    if not attribution:
+        attribution = "; ".join(dict.fromkeys(
+            str(r.info["attribution"]) for r in rasters if r.info.get("attribution")))
     heights = None
     ground_ref = origin.alt_m if origin is not None else 0.0
     dsm_info = None
@@ -395,7 +449,7 @@ def ingest(
         mask_fraction=float(mask.mean()),
         **(extra_manifest or {}),
     )
-    for message in check_coverage(scene):
+    for message in check_coverage(scene) + _mask_coverage(mask, bbox_lonlat):
         warnings.warn(f"scene {name}: {message}", GeonavWarning, stacklevel=2)
     scene.save(out, overwrite=overwrite, compress=compress)
     if progress:
