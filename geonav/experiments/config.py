@@ -1,0 +1,314 @@
+"""Experiment configs: one TOML file describes scenes, task sets, stages and comparisons.
+
+Layout (see ``configs/quick.toml``)::
+
+    name = "quick"
+    seeds = [0, 1, 2]
+
+    [convergence]            # ALGORITHMS.md (f); identical for every method
+    window = 100
+    threshold = 0.95
+    hold = 0.90
+
+    [scenes.A]               # a synthetic kind, or path = "scenes/A"
+    synthetic = "residential"
+    size_m = 900.0
+
+    [tasks.A_meta]           # made on the fly when absent (or path = "tasks.json")
+    scene = "A"
+    kind = "meta"            # meta: COUNT regions of SIZE m at ALT; scene: one per altitude
+    count = 6
+
+    [stages.meta]            # one training stage, run once per seed
+    mode = "meta-train"      # train | meta-train | curriculum
+    tasks = "A_meta"
+    algo = "isar"
+    episodes = 1500
+
+    [stages.transfer]
+    mode = "train"
+    tasks = "B_target"
+    init = "meta"            # starts from that stage's final policy (same seed)
+    episodes = 1000
+
+    [[compare]]              # one table/plot: methods are final stages
+    name = "transfer vs scratch"
+    part = "transfer"        # `--only transfer` runs just this comparison's stages
+    methods = ["transfer", "scratch"]
+    paper = { transfer = 2000, scratch = 50000 }
+
+Every stage is a unit of work per seed; a stage with ``init`` waits for its
+parent's unit of the same seed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from geonav.errors import ConfigError
+from geonav.experiments.convergence import ConvergenceCriterion
+
+STAGE_MODES = ("train", "meta-train", "curriculum")
+ALGOS = ("a3c", "savn", "isar")
+
+
+@dataclass(frozen=True)
+class SceneSpec:
+    """A scene: a synthetic kind (made on the fly) or an existing scene package.
+
+    Attributes:
+        name: the key in the config.
+        synthetic: "residential", "campus" or "wild" (or None with ``path``).
+        path: an existing scene package folder.
+        size_m: synthetic scene side in metres.
+        gsd_m: synthetic scene GSD in m/px.
+        seed: synthetic generator seed.
+    """
+
+    name: str
+    synthetic: str | None = None
+    path: str | None = None
+    size_m: float = 1200.0
+    gsd_m: float = 0.25
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class TaskSpec:
+    """A task set: made from a scene on the fly, or loaded from ``path``.
+
+    Attributes:
+        name: the key in the config.
+        scene: the scene key.
+        path: an existing task set JSON (then the rest is ignored).
+        kind: "meta" (``count`` regions of ``size_m`` at ``alt_m``) or "scene" (``alts_m``).
+        count: number of meta-tasks.
+        size_m: region side (meta) or centred square side (scene; None = whole scene).
+        alt_m: meta-task altitude.
+        alts_m: whole-scene altitudes.
+        step_m: lattice step in metres.
+        max_steps: episode cap.
+        obs_size_px: camera image side.
+        margin_alt_m: keep regions inside the imagery with this altitude's view margin.
+        seed: sampler seed.
+    """
+
+    name: str
+    scene: str
+    path: str | None = None
+    kind: str = "meta"
+    count: int = 1
+    size_m: float | None = 150.0
+    alt_m: float = 300.0
+    alts_m: tuple[float, ...] = (75.0, 45.0, 15.0)
+    step_m: float = 15.0
+    max_steps: int = 70
+    obs_size_px: int = 84
+    margin_alt_m: float | None = None
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    """One training stage, run once per seed.
+
+    Attributes:
+        name: the key in the config.
+        mode: "train" (one algorithm on a task set), "meta-train" (Eq. 1 over meta-tasks)
+            or "curriculum" (altitude stages on a whole-scene task set).
+        tasks: the task set key.
+        algo: "a3c", "savn" or "isar".
+        episodes: episode budget of the stage.
+        init: a stage whose final policy this one starts from (same seed).
+        workers: worker processes inside the unit (0 = single process).
+        options: algorithm options passed through (N, K, lr, encoder, ...).
+    """
+
+    name: str
+    mode: str
+    tasks: str
+    algo: str = "isar"
+    episodes: int = 1000
+    init: str | None = None
+    workers: int = 1
+    options: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class CompareSpec:
+    """A comparison between final stages.
+
+    Attributes:
+        name: title of the table and plots.
+        part: the part name for ``--only`` (default: the name).
+        methods: stage keys compared (episodes to convergence of each).
+        paper: the paper's episodes to convergence per method, for the ratio column.
+        count_parents: also report episodes including the stages each method starts from.
+    """
+
+    name: str
+    methods: tuple[str, ...]
+    part: str = ""
+    paper: dict[str, float] = field(default_factory=dict)
+    count_parents: bool = False
+
+
+@dataclass(frozen=True)
+class ExperimentConfig:
+    """A whole experiment (see the module docstring)."""
+
+    name: str
+    seeds: tuple[int, ...]
+    convergence: ConvergenceCriterion
+    scenes: dict[str, SceneSpec]
+    tasks: dict[str, TaskSpec]
+    stages: dict[str, StageSpec]
+    compare: tuple[CompareSpec, ...]
+    eval_starts: int = 100
+    flight: dict[str, Any] = field(default_factory=dict)
+    source: str = ""
+
+    def parts(self) -> list[str]:
+        return [c.part or c.name for c in self.compare]
+
+    def stages_for(self, only: list[str] | None) -> list[str]:
+        """Stage keys needed by the selected parts (all when ``only`` is None), parents first."""
+        if not only:
+            wanted = list(self.stages)
+        else:
+            unknown = sorted(set(only) - set(self.parts()))
+            if unknown:
+                raise ConfigError(f"--only {unknown}: unknown part(s); parts are {self.parts()}")
+            wanted = [m for c in self.compare if (c.part or c.name) in only for m in c.methods]
+        order: list[str] = []
+
+        def visit(key: str) -> None:
+            stage = self.stages[key]
+            if stage.init:
+                visit(stage.init)
+            if key not in order:
+                order.append(key)
+
+        for key in wanted:
+            visit(key)
+        return order
+
+    def to_dict(self) -> dict[str, Any]:
+        return _jsonable(dataclasses.asdict(self))
+
+
+def _jsonable(v: Any) -> Any:
+    if isinstance(v, dict):
+        return {str(k): _jsonable(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_jsonable(x) for x in v]
+    return v
+
+
+def _build(cls: type, name: str, d: Any, where: str) -> Any:
+    if not isinstance(d, dict):
+        raise ConfigError(f"{where} must be a table")
+    known = {f.name for f in dataclasses.fields(cls)} - {"name"}
+    unknown = sorted(set(d) - known)
+    if unknown:
+        raise ConfigError(f"{where}: unknown key(s) {unknown}; known: {sorted(known)}")
+    kwargs = dict(d)
+    for k, v in kwargs.items():
+        if isinstance(v, list):
+            kwargs[k] = tuple(v)
+    try:
+        return cls(name=name, **kwargs)
+    except TypeError as err:
+        raise ConfigError(f"{where}: {err}") from err
+
+
+def parse_config(data: dict[str, Any], source: str = "") -> ExperimentConfig:
+    """Validate a parsed TOML document into an :class:`ExperimentConfig`."""
+    known = {"name", "seeds", "convergence", "scenes", "tasks", "stages", "compare",
+             "eval_starts", "flight"}
+    unknown = sorted(set(data) - known)
+    if unknown:
+        raise ConfigError(f"{source}: unknown top-level key(s) {unknown}; known: {sorted(known)}")
+    try:
+        conv = ConvergenceCriterion(**data.get("convergence", {}))
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f"{source} [convergence]: {err}") from err
+    scenes = {k: _build(SceneSpec, k, v, f"[scenes.{k}]") for k, v in
+              data.get("scenes", {}).items()}
+    tasks = {k: _build(TaskSpec, k, v, f"[tasks.{k}]") for k, v in data.get("tasks", {}).items()}
+    stages = {}
+    for k, v in data.get("stages", {}).items():
+        v = dict(v)
+        options = {key: v.pop(key) for key in list(v) if key not in
+                   {"mode", "tasks", "algo", "episodes", "init", "workers", "options"}}
+        v["options"] = {**v.get("options", {}), **options}
+        stages[k] = _build(StageSpec, k, v, f"[stages.{k}]")
+    compare = tuple(_build(CompareSpec, c.get("name", f"compare-{i}"),
+                           {k: v for k, v in c.items() if k != "name"}, f"[[compare]] #{i}")
+                    for i, c in enumerate(data.get("compare", [])))
+    cfg = ExperimentConfig(
+        name=str(data.get("name", Path(source).stem or "experiment")),
+        seeds=tuple(int(s) for s in data.get("seeds", [0, 1, 2])),
+        convergence=conv, scenes=scenes, tasks=tasks, stages=stages, compare=compare,
+        eval_starts=int(data.get("eval_starts", 100)), flight=dict(data.get("flight", {})),
+        source=source,
+    )
+    _check(cfg)
+    return cfg
+
+
+def _check(cfg: ExperimentConfig) -> None:
+    if not cfg.seeds:
+        raise ConfigError("seeds must list at least one seed")
+    for s in cfg.scenes.values():
+        if (s.synthetic is None) == (s.path is None):
+            raise ConfigError(f"[scenes.{s.name}] needs exactly one of synthetic or path")
+        if s.synthetic and s.synthetic not in ("residential", "campus", "wild"):
+            raise ConfigError(f"[scenes.{s.name}] synthetic = {s.synthetic!r}: use residential, "
+                              "campus or wild")
+    for t in cfg.tasks.values():
+        if t.scene not in cfg.scenes:
+            raise ConfigError(f"[tasks.{t.name}] scene = {t.scene!r} is not among the scenes "
+                              f"{sorted(cfg.scenes)}")
+        if t.kind not in ("meta", "scene"):
+            raise ConfigError(f"[tasks.{t.name}] kind = {t.kind!r}: use meta or scene")
+    for st in cfg.stages.values():
+        if st.mode not in STAGE_MODES:
+            raise ConfigError(f"[stages.{st.name}] mode = {st.mode!r}: use one of {STAGE_MODES}")
+        if st.algo not in ALGOS:
+            raise ConfigError(f"[stages.{st.name}] algo = {st.algo!r}: use one of {ALGOS}")
+        if st.tasks not in cfg.tasks:
+            raise ConfigError(f"[stages.{st.name}] tasks = {st.tasks!r} is not among the task "
+                              f"sets {sorted(cfg.tasks)}")
+        if st.init is not None and st.init not in cfg.stages:
+            raise ConfigError(f"[stages.{st.name}] init = {st.init!r} is not a stage")
+        if st.episodes < 1:
+            raise ConfigError(f"[stages.{st.name}] episodes must be >= 1")
+    for key in cfg.stages:  # no cycles
+        seen, cur = set(), key
+        while cur is not None:
+            if cur in seen:
+                raise ConfigError(f"[stages.{key}] init chain has a cycle")
+            seen.add(cur)
+            cur = cfg.stages[cur].init
+    for c in cfg.compare:
+        missing = [m for m in c.methods if m not in cfg.stages]
+        if missing:
+            raise ConfigError(f"[[compare]] {c.name!r}: methods {missing} are not stages")
+
+
+def load_config(path: str | Path, overrides: dict[str, Any] | None = None) -> ExperimentConfig:
+    """Read a TOML experiment config; ``overrides`` replace top-level keys."""
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError as err:
+        raise ConfigError(f"config {path} does not exist") from err
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError(f"config {path} is not valid TOML: {err}") from err
+    data.update(overrides or {})
+    return parse_config(data, str(path))
