@@ -1,0 +1,477 @@
+"""A3C (ALGORITHMS.md (a)): W worker processes, one shared model, a shared Adam.
+
+Per episode (random start, zero LSTM state), until done, each worker:
+
+1. syncs its local network from the shared one;
+2. acts ``t_max`` steps *under no_grad*, storing the inputs;
+3. recomputes the rollout's forward in one batch from the stored start state
+   (the CNN sees all T views in one call; the LSTM runs its T steps), takes
+   L_AC (:mod:`geonav.policy.losses`), backpropagates and clips the norm to 100;
+4. hands its gradients to the shared parameters and steps the shared Adam;
+5. carries the (detached) state on.
+
+Step 3 gives the same loss and gradient as keeping a graph per step (the same
+parameters produce the same numbers; see ``tests/test_policy_losses.py``), with
+a far cheaper backward. ``workers=0`` runs one worker in this process,
+deterministically for a seed, and can resume bit-exactly.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import queue as queue_mod
+import time
+import traceback
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from geonav.errors import ConfigError, GeonavError
+from geonav.policy.agent import choose_action, obs_inputs
+from geonav.policy.callbacks import Callback, CSVMetrics, plot_learning_curve, \
+    tensorboard_callback
+from geonav.policy.checkpoint import check_compatible, load_checkpoint, make_meta, \
+    save_checkpoint
+from geonav.policy.config import A3CConfig, NetConfig, to_dict
+from geonav.policy.encoders import FrozenEncoder, build_frozen_encoder
+from geonav.policy.evaluation import spl
+from geonav.policy.losses import actor_critic_loss
+from geonav.policy.model import ActorCritic, State, detach_state
+from geonav.policy.optim import SharedAdam
+
+log = logging.getLogger(__name__)
+
+EnvFactory = Callable[[], Any]
+
+
+class WorkerFailed(GeonavError):
+    """A training worker process raised or died; the message holds its traceback."""
+
+
+@dataclass
+class Rollout:
+    """Up to ``t_max`` steps of one episode, stored for the batched loss recompute."""
+
+    start_state: State
+    target: torch.Tensor
+    views: list[torch.Tensor] = field(default_factory=list)
+    actions: list[int] = field(default_factory=list)
+    rewards: list[float] = field(default_factory=list)
+
+    def __len__(self) -> int:
+        return len(self.actions)
+
+
+def rollout_loss(model: nn.Module, rollout: Rollout, bootstrap: float, cfg: A3CConfig,
+                 params: dict[str, torch.Tensor] | None = None) -> Any:
+    """L_AC of a stored rollout, recomputed in one forward call from its start state.
+
+    Args:
+        model: the actor-critic.
+        rollout: the stored steps.
+        bootstrap: B (0 when the rollout ended the episode).
+        cfg: trainer config (its ``loss``).
+        params: optional name -> tensor dict for ``functional_call`` (SAVN/ISAR).
+    """
+    views = torch.stack(rollout.views).unsqueeze(1)            # (T, 1, ...)
+    args = (views, rollout.target.unsqueeze(0), rollout.start_state)
+    if params is None:
+        logits, values, _ = model(*args)
+    else:
+        logits, values, _ = torch.func.functional_call(model, params, args, strict=True)
+    return actor_critic_loss(logits[:, 0], values[:, 0], rollout.actions, rollout.rewards,
+                             bootstrap, cfg.loss)
+
+
+class A3CWorker:
+    """One A3C worker: a local network, an env, and the shared model and optimiser.
+
+    With ``shared_model=None`` the local network *is* the shared one (single process).
+    """
+
+    def __init__(self, rank: int, model: ActorCritic, optimizer: torch.optim.Optimizer,
+                 env: Any, cfg: A3CConfig, frozen: FrozenEncoder | None, seed: int,
+                 shared_model: ActorCritic | None = None,
+                 rng_state: dict[str, Any] | None = None) -> None:
+        self.rank = rank
+        self.model = model
+        self.shared = shared_model
+        self.optimizer = optimizer
+        self.env = env
+        self.cfg = cfg
+        self.frozen = frozen
+        self.seed = seed
+        self.rng = np.random.default_rng(seed)
+        self._env_seeded = False
+        self.env_steps = 0
+        self._params = list(model.parameters())
+        self._shared_params = list(shared_model.parameters()) if shared_model is not None \
+            else None
+        if rng_state is not None:
+            self.set_rng_state(rng_state)
+
+    # -- RNG state (exact resume in single-process mode) ----------------------------------
+    def rng_state(self) -> dict[str, Any]:
+        return {"torch": torch.get_rng_state(), "numpy": self.rng.bit_generator.state,
+                "env": self.env.unwrapped.np_random.bit_generator.state,
+                "env_seeded": self._env_seeded}
+
+    def set_rng_state(self, st: dict[str, Any]) -> None:
+        torch.set_rng_state(st["torch"])
+        self.rng.bit_generator.state = st["numpy"]
+        self.env.unwrapped.np_random.bit_generator.state = st["env"]
+        self._env_seeded = bool(st["env_seeded"])
+
+    # -- the algorithm --------------------------------------------------------------------
+    def sync(self) -> None:
+        """Step 1: local parameters <- shared parameters."""
+        if self._shared_params is not None:
+            with torch.no_grad():
+                torch._foreach_copy_(self._params, self._shared_params)
+
+    def update(self, rollout: Rollout, bootstrap: float) -> Any:
+        """Steps 3-4: batched recompute, L_AC, backward, clip, shared Adam step."""
+        for p in self._params:
+            p.grad = None
+        loss = rollout_loss(self.model, rollout, bootstrap, self.cfg)
+        loss.total.backward()
+        nn.utils.clip_grad_norm_(self._params, self.cfg.max_grad_norm)
+        if self._shared_params is not None:
+            for p, sp in zip(self._params, self._shared_params):
+                sp.grad = p.grad
+        self.optimizer.step()
+        return loss
+
+    def run_episode(self, episode: int) -> dict[str, Any]:
+        """Play one training episode, updating every ``t_max`` steps; returns its record."""
+        t0 = time.perf_counter()
+        cfg = self.cfg
+        if not self._env_seeded:
+            obs, info = self.env.reset(seed=self.seed)
+            self._env_seeded = True
+        else:
+            obs, info = self.env.reset()
+        shortest = int(info["shortest_path"])
+        state = self.model.initial_state()
+        ep_return, length, collisions = 0.0, 0, 0
+        pl = vl = ent = 0.0
+        n_updates = 0
+        terminated = truncated = False
+        view, target = obs_inputs(obs, info, self.frozen)
+        while not (terminated or truncated):
+            self.sync()
+            ro = Rollout(detach_state(state), target)
+            with torch.no_grad():
+                for _ in range(cfg.t_max):
+                    logits, _, state = self.model(view[None, None], target[None], state)
+                    a = choose_action(logits[0, 0], False, self.rng)
+                    obs, r, terminated, truncated, info = self.env.step(a)
+                    ro.views.append(view)
+                    ro.actions.append(a)
+                    ro.rewards.append(float(r))
+                    ep_return += float(r)
+                    length += 1
+                    collisions += int(bool(info["collided"]))
+                    view, _ = obs_inputs(obs, info, self.frozen)
+                    if terminated or truncated:
+                        break
+                if terminated or (truncated and not cfg.loss.bootstrap_on_truncation):
+                    bootstrap = 0.0
+                else:  # V(s_next): an extra forward that does not advance the state
+                    _, v_next, _ = self.model(view[None, None], target[None], state)
+                    bootstrap = float(v_next[0, 0])
+            loss = self.update(ro, bootstrap)
+            pl += loss.policy.item()
+            vl += loss.value.item()
+            ent += loss.entropy.item() / len(ro)
+            n_updates += 1
+            state = detach_state(state)
+        self.env_steps += length
+        success = bool(info["success"])
+        return {"episode": episode, "worker": self.rank, "task": info["task"],
+                "task_index": int(info["task_index"]), "return": ep_return, "length": length,
+                "success": success, "spl": spl(success, shortest, length),
+                "collisions": collisions, "shortest_path": shortest,
+                "policy_loss": pl / n_updates, "value_loss": vl / n_updates,
+                "entropy": ent / n_updates, "env_steps": length,
+                "wall_s": time.perf_counter() - t0}
+
+
+def _worker_process(rank: int, shared_model: ActorCritic, optimizer: SharedAdam,
+                    env_factory: EnvFactory, net_cfg: NetConfig, cfg: A3CConfig, seed: int,
+                    counter: Any, lock: Any, results: Any, stop: Any) -> None:
+    """Process target: claim episode numbers from the global counter until the budget is spent."""
+    try:
+        torch.set_num_threads(cfg.torch_threads)
+        torch.manual_seed(seed)
+        env = env_factory()
+        local = ActorCritic(net_cfg)
+        local.load_state_dict(shared_model.state_dict())
+        worker = A3CWorker(rank, local, optimizer, env, cfg, build_frozen_encoder(net_cfg),
+                           seed, shared_model=shared_model)
+        while not stop.is_set():
+            with lock:
+                if counter.value >= cfg.episodes:
+                    break
+                counter.value += 1
+                episode = counter.value
+            results.put(("episode", rank, worker.run_episode(episode)))
+        results.put(("done", rank, None))
+    except BaseException:  # report everything, including KeyboardInterrupt, to the main process
+        results.put(("error", rank, traceback.format_exc()))
+
+
+@dataclass
+class TrainResult:
+    """What a training run produced."""
+
+    model: ActorCritic
+    episodes: int
+    """Episodes completed in total (including those of a resumed checkpoint)."""
+    env_steps: int
+    """Environment steps taken by this call."""
+    wall_s: float
+    start_episode: int
+    checkpoint: Path | None = None
+    out_dir: Path | None = None
+    records: list[dict[str, Any]] = field(default_factory=list, repr=False)
+
+    @property
+    def steps_per_s(self) -> float:
+        return self.env_steps / max(self.wall_s, 1e-9)
+
+
+class A3CTrainer:
+    """Trains an :class:`ActorCritic` with A3C on environments from ``env_factory``.
+
+    Args:
+        env_factory: a picklable callable returning a fresh environment (called in
+            every worker process, and once here for metadata and checks).
+        net_cfg: the architecture (ignored when resuming: the checkpoint's is used,
+            and a different explicit one is refused).
+        cfg: A3C settings.
+        out_dir: run folder (config.json, metrics.csv, checkpoints/, learning_curve.png);
+            None keeps everything in memory.
+        resume: a checkpoint to continue from (episodes, weights, Adam state, RNG).
+        callbacks: extra :class:`Callback` objects (progress bars, early stopping).
+        mp_context: 'spawn' (default; safe with torch) or 'fork' (faster start).
+        keep_records: keep every episode record in ``TrainResult.records``.
+    """
+
+    algorithm = "a3c"
+
+    def __init__(self, env_factory: EnvFactory, net_cfg: NetConfig | None = None,
+                 cfg: A3CConfig = A3CConfig(), *, out_dir: str | os.PathLike[str] | None = None,
+                 resume: str | os.PathLike[str] | None = None,
+                 callbacks: Sequence[Callback] = (), mp_context: str = "spawn",
+                 keep_records: bool = True, tensorboard: bool = True) -> None:
+        if mp_context not in ("spawn", "fork", "forkserver"):
+            raise ConfigError(f"mp_context must be spawn, fork or forkserver, not {mp_context!r}")
+        self.env_factory = env_factory
+        self.cfg = cfg
+        self.mp_context = mp_context
+        self.keep_records = keep_records
+        self.callbacks = list(callbacks)
+        self.env = env_factory()
+        # Validate the resume checkpoint before touching the run folder.
+        self.ckpt = load_checkpoint(resume) if resume is not None else None
+        if self.ckpt is not None:
+            check_compatible(self.ckpt.meta, self.env, path=self.ckpt.path, net_cfg=net_cfg)
+            net_cfg = self.ckpt.net_config
+        self.net_cfg = net_cfg or NetConfig(
+            obs_size_px=int(self.env.observation_space["image"].shape[0]))
+        n_env = int(self.env.observation_space["image"].shape[0])
+        if self.net_cfg.obs_size_px != n_env:
+            raise ConfigError(f"the network expects {self.net_cfg.obs_size_px} px views, the "
+                              f"environment gives {n_env} px; set obs_size_px={n_env}")
+        if self.net_cfg.n_actions != int(self.env.action_space.n):
+            raise ConfigError(f"the network has {self.net_cfg.n_actions} actions, the env "
+                              f"{self.env.action_space.n}")
+        self.out_dir = Path(out_dir) if out_dir is not None else None
+        if self.out_dir is not None and self.ckpt is None and \
+                (self.out_dir / "metrics.csv").exists():
+            raise ConfigError(f"run folder {self.out_dir} already holds a run; pass --resume "
+                              f"{self.out_dir / 'checkpoints' / 'latest.pt'} or another --out")
+        self.frozen = build_frozen_encoder(self.net_cfg)
+        torch.manual_seed(cfg.seed)
+        self.model = ActorCritic(self.net_cfg)
+        self.optimizer = SharedAdam(self.model.parameters(), lr=cfg.lr, betas=cfg.adam_betas,
+                                    eps=cfg.adam_eps, amsgrad=cfg.amsgrad, fused=cfg.fused)
+        self.start_episode = 0
+        self.rng_state: dict[str, Any] | None = None
+        if self.ckpt is not None:
+            self.model.load_state_dict(self.ckpt.model_state)
+            if self.ckpt.optimizer_state is not None:
+                self.optimizer.load_state_dict(self.ckpt.optimizer_state)
+            self.start_episode = self.ckpt.episodes
+            self.rng_state = self.ckpt.rng
+        self.model.share_memory()
+        self.episodes_done = self.start_episode
+
+    # -- run folder -------------------------------------------------------------------------
+    def resolved_config(self) -> dict[str, Any]:
+        return {"algorithm": self.algorithm, "net": to_dict(self.net_cfg),
+                "a3c": to_dict(self.cfg), "env": make_meta(self.net_cfg, self.frozen, self.env,
+                                                           algorithm=self.algorithm,
+                                                           episodes=self.start_episode),
+                "resume": str(self.ckpt.path) if self.ckpt is not None else None,
+                "start_episode": self.start_episode, "mp_context": self.mp_context}
+
+    def _prepare_out_dir(self) -> list[Callback]:
+        if self.out_dir is None:
+            return []
+        (self.out_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
+        cfg_path = self.out_dir / "config.json"
+        if cfg_path.exists() and self.ckpt is not None:  # keep the original beside the resume
+            os.replace(cfg_path, self.out_dir / f"config.before_resume_{self.start_episode}.json")
+        tmp = cfg_path.with_name(".config.json.tmp")
+        tmp.write_text(json.dumps(self.resolved_config(), indent=1))
+        os.replace(tmp, cfg_path)
+        cbs: list[Callback] = [CSVMetrics(self.out_dir / "metrics.csv")]
+        tb = tensorboard_callback(self.out_dir / "tb")
+        if tb is not None:
+            cbs.append(tb)
+        return cbs
+
+    def checkpoint_meta(self, episodes: int) -> dict[str, Any]:
+        return make_meta(self.net_cfg, self.frozen, self.env, algorithm=self.algorithm,
+                         episodes=episodes, config={"a3c": to_dict(self.cfg)})
+
+    def save(self, path: str | os.PathLike[str], episodes: int,
+             rng: dict[str, Any] | None = None) -> Path:
+        """Write a checkpoint of the shared model and optimiser."""
+        return save_checkpoint(path, self.model.state_dict(), self.checkpoint_meta(episodes),
+                               self.optimizer.state_dict(), rng)
+
+    # -- training ---------------------------------------------------------------------------
+    def train(self) -> TrainResult:
+        """Run until ``cfg.episodes`` episodes in total; write the final checkpoint."""
+        cbs = self._prepare_out_dir() + self.callbacks
+        t0 = time.perf_counter()
+        result = TrainResult(self.model, self.start_episode, 0, 0.0, self.start_episode,
+                             out_dir=self.out_dir)
+        for cb in cbs:
+            cb.on_train_start({"episodes": self.cfg.episodes, "start_episode": self.start_episode,
+                               "workers": self.cfg.workers, "out_dir": self.out_dir})
+        try:
+            if self.cfg.workers == 0:
+                self._train_inline(cbs, result)
+            else:
+                self._train_workers(cbs, result)
+            result.wall_s = time.perf_counter() - t0
+            result.episodes = self.episodes_done
+            if self.out_dir is not None:
+                ck = self.out_dir / "checkpoints"
+                rng = self._final_rng
+                result.checkpoint = self.save(ck / "final.pt", self.episodes_done, rng)
+                self.save(ck / "latest.pt", self.episodes_done, rng)
+                for cb in cbs:
+                    cb.on_checkpoint(result.checkpoint, self.episodes_done)
+                metrics = self.out_dir / "metrics.csv"
+                for cb in cbs:
+                    if isinstance(cb, CSVMetrics):
+                        cb.close()
+                if metrics.exists():
+                    plot_learning_curve(metrics, self.out_dir / "learning_curve.png")
+        finally:
+            for cb in cbs:
+                cb.on_train_end(result)
+        return result
+
+    _final_rng: dict[str, Any] | None = None
+
+    def _on_record(self, rec: dict[str, Any], cbs: list[Callback], result: TrainResult,
+                   rng: Callable[[], dict[str, Any] | None]) -> bool:
+        """Handle one finished episode in the main process; False asks to stop."""
+        self.episodes_done += 1
+        result.env_steps += int(rec["length"])
+        if self.keep_records:
+            result.records.append(rec)
+        go_on = True
+        for cb in cbs:
+            if cb.on_episode(rec) is False:
+                go_on = False
+        every = self.cfg.checkpoint_every
+        if self.out_dir is not None and every and self.episodes_done % every == 0:
+            path = self.save(self.out_dir / "checkpoints" / "latest.pt", self.episodes_done,
+                             rng())
+            if self.cfg.keep_checkpoints:
+                self.save(self.out_dir / "checkpoints" / f"episode_{self.episodes_done}.pt",
+                          self.episodes_done, rng())
+            for cb in cbs:
+                cb.on_checkpoint(path, self.episodes_done)
+        return go_on
+
+    def _train_inline(self, cbs: list[Callback], result: TrainResult) -> None:
+        threads = torch.get_num_threads()
+        torch.set_num_threads(self.cfg.torch_threads)
+        try:
+            worker = A3CWorker(0, self.model, self.optimizer, self.env, self.cfg, self.frozen,
+                               self.cfg.seed, rng_state=self.rng_state)
+            while self.episodes_done < self.cfg.episodes:
+                rec = worker.run_episode(self.episodes_done + 1)
+                if not self._on_record(rec, cbs, result, worker.rng_state):
+                    break
+            self._final_rng = worker.rng_state()
+        finally:
+            torch.set_num_threads(threads)
+
+    def _train_workers(self, cbs: list[Callback], result: TrainResult) -> None:
+        ctx = torch.multiprocessing.get_context(self.mp_context)
+        counter = ctx.Value("l", self.episodes_done)
+        lock = ctx.Lock()
+        results = ctx.Queue()
+        stop = ctx.Event()
+        procs = []
+        for rank in range(self.cfg.workers):
+            # Distinct streams per worker, and new ones after a resume.
+            seed = self.cfg.seed + 1000 * rank + 7919 * self.start_episode
+            p = ctx.Process(target=_worker_process, name=f"a3c-worker-{rank}",
+                            args=(rank, self.model, self.optimizer, self.env_factory,
+                                  self.net_cfg, self.cfg, seed, counter, lock, results, stop),
+                            daemon=True)
+            p.start()
+            procs.append(p)
+        finished: set[int] = set()
+        error: str | None = None
+        try:
+            while len(finished) < len(procs):
+                try:
+                    kind, rank, payload = results.get(timeout=0.5)
+                except queue_mod.Empty:
+                    dead = [i for i, p in enumerate(procs)
+                            if i not in finished and p.exitcode not in (None, 0)]
+                    if dead:
+                        error = f"worker {dead[0]} died with exit code {procs[dead[0]].exitcode}"
+                        break
+                    continue
+                if kind == "episode":
+                    if not self._on_record(payload, cbs, result, lambda: None):
+                        stop.set()
+                elif kind == "done":
+                    finished.add(rank)
+                else:
+                    error = f"worker {rank} failed:\n{payload}"
+                    break
+        finally:
+            stop.set()
+            for p in procs:
+                p.join(timeout=10)
+                if p.is_alive():
+                    p.terminate()
+                    p.join()
+        if error is not None:
+            raise WorkerFailed(error)
+
+
+def train_a3c(env_factory: EnvFactory, net_cfg: NetConfig | None = None,
+              cfg: A3CConfig = A3CConfig(), **kwargs: Any) -> TrainResult:
+    """Build an :class:`A3CTrainer` and run it (see its arguments)."""
+    return A3CTrainer(env_factory, net_cfg, cfg, **kwargs).train()

@@ -1,0 +1,222 @@
+"""Policy checkpoints (DESIGN.md "Policy checkpoints").
+
+A checkpoint is ``torch.save`` of a plain dict::
+
+    {"format": "geonav-policy", "format_version": 1,
+     "model": state_dict (tensors), "optimizer": Adam state_dict or None,
+     "rng": RNG states for an exact resume or None, "meta": JSON-able dict}
+
+``meta`` holds the architecture (``net``), the encoder, the observation size,
+field of view, action meanings, the altitude and lattice step it was trained
+for, the algorithm, episodes seen, the geonav and torch versions, the scene id
+and the task fingerprint. It loads with ``torch.load(weights_only=True)``;
+writes are atomic (temp file + ``os.replace``), so a crash never leaves a
+half-written checkpoint under the final name.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import tempfile
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from geonav.errors import CheckpointError, ConfigError
+from geonav.policy.config import NetConfig, from_dict
+from geonav.policy.encoders import FrozenEncoder, build_frozen_encoder
+from geonav.policy.model import ActorCritic, arch_meta
+
+log = logging.getLogger(__name__)
+
+FORMAT = "geonav-policy"
+FORMAT_VERSION = 1
+
+
+@dataclass
+class Checkpoint:
+    """A loaded, validated checkpoint."""
+
+    path: Path
+    meta: dict[str, Any]
+    model_state: dict[str, torch.Tensor]
+    optimizer_state: dict[str, Any] | None
+    rng: dict[str, Any] | None
+
+    @property
+    def net_config(self) -> NetConfig:
+        d = {k: v for k, v in self.meta["net"].items() if k != "class"}
+        try:
+            return from_dict(NetConfig, d)
+        except (ConfigError, TypeError) as err:
+            raise CheckpointError(f"checkpoint {self.path} has an invalid architecture record "
+                                  f"{d}: {err}") from err
+
+    @property
+    def episodes(self) -> int:
+        return int(self.meta.get("episodes", 0))
+
+    def build_model(self) -> ActorCritic:
+        """The network with the checkpoint's weights (eval mode)."""
+        model = ActorCritic(self.net_config)
+        try:
+            model.load_state_dict(self.model_state, strict=True)
+        except RuntimeError as err:
+            raise CheckpointError(f"checkpoint {self.path} weights do not fit its architecture "
+                                  f"record: {err}") from err
+        return model.eval()
+
+    def build_encoder(self) -> FrozenEncoder | None:
+        """The frozen encoder the policy was trained with (None for the trainable CNN)."""
+        enc = build_frozen_encoder(self.net_config)
+        want = self.meta.get("encoder", {})
+        if enc is not None and want.get("weights_sha256") and \
+                enc.spec.get("weights_sha256") != want["weights_sha256"]:
+            raise CheckpointError(f"checkpoint {self.path} was trained with encoder weights "
+                                  f"sha256 {want['weights_sha256'][:12]}..., but "
+                                  f"{enc.spec.get('weights')} has another; pass the same file")
+        return enc
+
+
+def task_fingerprint(tasks: list[Any]) -> str:
+    """A short hash of a list of ``NavTask`` (their JSON form)."""
+    blob = json.dumps([t.to_dict() for t in tasks], sort_keys=True).encode()
+    return hashlib.sha256(blob).hexdigest()[:16]
+
+
+def env_meta(env: Any) -> dict[str, Any]:
+    """What a checkpoint records about the environment it was trained on."""
+    u = env.unwrapped
+    tasks = list(getattr(u, "tasks", []))
+    alts = sorted({float(t.alt_m) for t in tasks})
+    steps = sorted({float(t.step_m) for t in tasks})
+    camera = getattr(u, "camera", None)
+    scene = getattr(u, "scene", None)
+    return {
+        "obs_size_px": int(env.observation_space["image"].shape[0]),
+        "fov_deg": float(camera.fov_deg) if camera is not None else None,
+        "n_actions": int(env.action_space.n),
+        "action_meanings": list(getattr(u, "action_meanings", [])),
+        "alt_m": alts[0] if len(alts) == 1 else alts,
+        "step_m": steps[0] if len(steps) == 1 else steps,
+        "scene_id": getattr(scene, "scene_id", None),
+        "scene_name": getattr(scene, "name", None),
+        "tasks": [t.name for t in tasks],
+        "task_fingerprint": task_fingerprint(tasks) if tasks else None,
+    }
+
+
+def make_meta(net_cfg: NetConfig, encoder: FrozenEncoder | None, env: Any, *, algorithm: str,
+              episodes: int, config: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The ``meta`` dict of a checkpoint."""
+    import geonav
+
+    meta = env_meta(env)
+    meta.update({
+        "net": arch_meta(net_cfg),
+        "encoder": encoder.spec if encoder is not None else {"kind": "cnn", "trainable": True},
+        "algorithm": algorithm,
+        "episodes": int(episodes),
+        "geonav_version": geonav.__version__,
+        "torch_version": torch.__version__,
+        "config": config or {},
+    })
+    return meta
+
+
+def save_checkpoint(path: str | os.PathLike[str], model_state: dict[str, torch.Tensor],
+                    meta: dict[str, Any], optimizer_state: dict[str, Any] | None = None,
+                    rng: dict[str, Any] | None = None) -> Path:
+    """Write a checkpoint atomically (temp file in the same folder + ``os.replace``)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    json.dumps(meta)  # fail before writing anything if meta is not JSON-able
+    blob = {"format": FORMAT, "format_version": FORMAT_VERSION,
+            "model": {k: v.detach().clone() for k, v in model_state.items()},
+            "optimizer": optimizer_state, "rng": rng, "meta": meta}
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            torch.save(blob, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def load_checkpoint(path: str | os.PathLike[str]) -> Checkpoint:
+    """Load and validate a checkpoint (``weights_only=True``).
+
+    Raises:
+        CheckpointError: missing, truncated or corrupt file, or not a geonav policy.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {path} does not exist")
+    try:
+        blob = torch.load(path, map_location="cpu", weights_only=True)
+    except (RuntimeError, EOFError, OSError, ValueError, zipfile.BadZipFile,
+            __import__("pickle").UnpicklingError) as err:
+        raise CheckpointError(f"checkpoint {path} is corrupt or truncated and cannot be read "
+                              f"({type(err).__name__}: {str(err).splitlines()[0][:200]}); "
+                              "use another checkpoint, e.g. the run's checkpoints/latest.pt") \
+            from err
+    if not isinstance(blob, dict) or blob.get("format") != FORMAT:
+        raise CheckpointError(f"{path} is not a geonav policy checkpoint (no "
+                              f"format={FORMAT!r} key)")
+    if blob.get("format_version") != FORMAT_VERSION:
+        raise CheckpointError(f"checkpoint {path} has format_version "
+                              f"{blob.get('format_version')}, this geonav reads {FORMAT_VERSION}")
+    meta, state = blob.get("meta"), blob.get("model")
+    if not isinstance(meta, dict) or not isinstance(meta.get("net"), dict):
+        raise CheckpointError(f"checkpoint {path} has no architecture record in its meta")
+    if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor)
+                                              for v in state.values()):
+        raise CheckpointError(f"checkpoint {path} has no weights dict")
+    ckpt = Checkpoint(path, meta, state, blob.get("optimizer"), blob.get("rng"))
+    ckpt.net_config  # noqa: B018 - validates the architecture record
+    return ckpt
+
+
+def check_compatible(meta: dict[str, Any], env: Any, *, path: Any = "checkpoint",
+                     net_cfg: NetConfig | None = None) -> None:
+    """Refuse a checkpoint whose observation size, action set or encoder differ from the env's.
+
+    Args:
+        meta: the checkpoint's meta.
+        env: the environment the policy will act in.
+        path: how to name the checkpoint in messages.
+        net_cfg: the architecture a caller asks for (resume); compared with the checkpoint's.
+
+    Raises:
+        CheckpointError: on any mismatch, naming both values.
+    """
+    em = env_meta(env)
+    if int(meta.get("obs_size_px", -1)) != em["obs_size_px"]:
+        raise CheckpointError(f"{path} was trained on {meta.get('obs_size_px')} px observations, "
+                              f"the environment gives {em['obs_size_px']} px; use --obs-size "
+                              f"{meta.get('obs_size_px')}")
+    if int(meta.get("n_actions", -1)) != em["n_actions"] or (
+            em["action_meanings"] and meta.get("action_meanings")
+            and list(meta["action_meanings"]) != em["action_meanings"]):
+        raise CheckpointError(f"{path} was trained with actions {meta.get('action_meanings')}, "
+                              f"the environment has {em['action_meanings']}")
+    if net_cfg is not None:
+        ck = meta["net"]
+        for key in ("encoder", "obs_size_px", "embed_dim", "action_embed_dim", "hidden_size",
+                    "lstm_size", "n_actions"):
+            if ck.get(key) != getattr(net_cfg, key):
+                raise CheckpointError(f"{path} has {key}={ck.get(key)!r}, but this run asks for "
+                                      f"{key}={getattr(net_cfg, key)!r}")
+    if meta.get("scene_id") and em["scene_id"] and meta["scene_id"] != em["scene_id"]:
+        log.info("%s was trained on scene %s, now used on %s", path, meta.get("scene_name"),
+                 em["scene_name"])

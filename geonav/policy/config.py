@@ -1,0 +1,168 @@
+"""Configuration dataclasses of the policy package (CleanRL style: a docstring per field).
+
+Every field's docstring becomes its ``--help`` text in the CLI, and the resolved
+config of a run is written as JSON into the run folder (STYLE.md rule 5).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+from geonav.errors import ConfigError
+
+ENCODERS = ("cnn", "random", "resnet18")
+
+
+@dataclass(frozen=True)
+class NetConfig:
+    """Architecture of the actor-critic (ALGORITHMS.md 4.0)."""
+
+    encoder: str = "cnn"
+    """Image encoder: 'cnn' (small CNN trained end to end), 'random' (frozen random CNN,
+    cached features; tests and benchmarks) or 'resnet18' (frozen, needs geonav[resnet])."""
+    encoder_weights: str | None = None
+    """ResNet18 weights: a local state_dict file; None downloads torchvision's pretrained ones."""
+    obs_size_px: int = 84
+    """Side of the square observation in pixels (N); must match the environment's camera."""
+    embed_dim: int = 64
+    """Size of the current-view and target-view embeddings."""
+    action_embed_dim: int = 10
+    """Size of the previous-action-probabilities embedding."""
+    hidden_size: int = 256
+    """Width of the fully connected layer after the concatenation."""
+    lstm_size: int = 256
+    """Hidden size of the LSTMCell (SAVN uses 512; the paper gives none)."""
+    n_actions: int = 4
+    """Number of discrete actions (GeoNavEnv: forward, right, left, backward)."""
+    random_encoder_seed: int = 0
+    """Seed of the frozen random CNN's weights (encoder='random')."""
+
+    def __post_init__(self) -> None:
+        if self.encoder not in ENCODERS:
+            raise ConfigError(f"encoder must be one of {ENCODERS}, not {self.encoder!r}")
+        if not 16 <= self.obs_size_px <= 1024:
+            raise ConfigError(f"obs_size_px must be within 16..1024, got {self.obs_size_px}")
+        for name in ("embed_dim", "action_embed_dim", "hidden_size", "lstm_size", "n_actions"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"{name} must be >= 1, got {getattr(self, name)}")
+
+
+@dataclass(frozen=True)
+class LossConfig:
+    """The segment actor-critic loss L_AC (ALGORITHMS.md 4.0)."""
+
+    gamma: float = 0.99
+    """Discount factor."""
+    tau: float = 1.0
+    """GAE lambda."""
+    beta: float = 0.01
+    """Entropy bonus weight."""
+    value_coef: float = 0.5
+    """Weight of the value loss in L = policy + value_coef * value."""
+    bootstrap_on_truncation: bool = False
+    """Bootstrap with V(s) on a time-limit truncation (truncation-correct); False follows SAVN,
+    which treats a timeout as done and bootstraps 0."""
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.gamma <= 1.0 or not 0.0 <= self.tau <= 1.0:
+            raise ConfigError(f"gamma and tau must lie in [0, 1], got {self.gamma}, {self.tau}")
+
+
+@dataclass(frozen=True)
+class A3CConfig:
+    """A3C training (ALGORITHMS.md (a))."""
+
+    episodes: int = 1000
+    """Training episodes in total, counted over all workers (including resumed ones)."""
+    workers: int = 2
+    """Worker processes; 0 runs the deterministic single-process mode."""
+    t_max: int = 15
+    """Steps per rollout between updates (K*N = 15, as often as ISAR's adaptive updates)."""
+    lr: float = 1e-4
+    """Learning rate of the shared Adam."""
+    adam_eps: float = 1e-3
+    """Adam epsilon (SAVN's SharedAdam)."""
+    adam_betas: tuple[float, float] = (0.9, 0.999)
+    """Adam betas."""
+    amsgrad: bool = True
+    """AMSGrad variant, as SAVN's SharedAdam."""
+    fused: bool = True
+    """Use the fused Adam kernel (several times faster steps on CPU)."""
+    max_grad_norm: float = 100.0
+    """Gradient-norm clip per update."""
+    seed: int = 0
+    """Seed of torch, numpy and the environment (worker i uses seed + 1000 * i)."""
+    checkpoint_every: int = 500
+    """Write checkpoints/latest.pt every this many episodes (0: only the final one)."""
+    keep_checkpoints: bool = False
+    """Also keep checkpoints/episode_<n>.pt for every periodic checkpoint."""
+    torch_threads: int = 1
+    """Torch intra-op threads per worker (one per worker is fastest on a small CPU)."""
+    loss: LossConfig = field(default_factory=LossConfig)
+    """Loss settings."""
+
+    def __post_init__(self) -> None:
+        if self.episodes < 1:
+            raise ConfigError(f"episodes must be >= 1, got {self.episodes}")
+        if self.workers < 0:
+            raise ConfigError(f"workers must be >= 0, got {self.workers}")
+        if self.t_max < 1:
+            raise ConfigError(f"t_max must be >= 1, got {self.t_max}")
+        if self.lr <= 0:
+            raise ConfigError(f"lr must be positive, got {self.lr}")
+        if self.checkpoint_every < 0:
+            raise ConfigError(f"checkpoint_every must be >= 0, got {self.checkpoint_every}")
+
+
+def to_dict(cfg: Any) -> dict[str, Any]:
+    """A JSON-able dict of a (nested) config dataclass."""
+    d = dataclasses.asdict(cfg)
+    return _jsonable(d)
+
+
+def _jsonable(v: Any) -> Any:
+    if isinstance(v, dict):
+        return {k: _jsonable(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_jsonable(x) for x in v]
+    return v
+
+
+def from_dict(cls: type, d: dict[str, Any]) -> Any:
+    """Build ``cls`` from a dict as written by :func:`to_dict`; unknown keys are an error."""
+    if not isinstance(d, dict):
+        raise ConfigError(f"{cls.__name__} config must be a mapping, got {type(d).__name__}")
+    known = {f.name: f for f in fields(cls)}
+    unknown = sorted(set(d) - set(known))
+    if unknown:
+        raise ConfigError(f"unknown {cls.__name__} option(s) {unknown}; known: {sorted(known)}")
+    kwargs: dict[str, Any] = {}
+    for k, v in d.items():
+        if k == "loss" and cls is A3CConfig:
+            v = from_dict(LossConfig, v)
+        elif k == "adam_betas":
+            v = tuple(v)
+        kwargs[k] = v
+    return cls(**kwargs)
+
+
+def field_help(cls: type) -> dict[str, str]:
+    """Field name -> its docstring (for argparse help), read from the class source."""
+    import ast
+    import inspect
+    import textwrap
+
+    try:
+        tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
+    except (OSError, TypeError):
+        return {}
+    out: dict[str, str] = {}
+    body = tree.body[0].body  # type: ignore[attr-defined]
+    for node, nxt in zip(body, body[1:]):
+        if (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name)
+                and isinstance(nxt, ast.Expr) and isinstance(nxt.value, ast.Constant)
+                and isinstance(nxt.value.value, str)):
+            out[node.target.id] = " ".join(nxt.value.value.split())
+    return out

@@ -1,0 +1,139 @@
+"""Evaluation on a fixed, seeded set of start cells: success rate, SPL, length, collisions.
+
+SPL (Anderson et al. 2018) = mean_i S_i * l_i / max(p_i, l_i), with l_i the BFS
+shortest path from the start and p_i the steps taken.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from geonav.policy.agent import Agent
+from geonav.policy.encoders import FrozenEncoder
+from geonav.policy.model import ActorCritic
+
+Start = tuple[int, tuple[int, int]]
+
+
+class Actor(Protocol):
+    def reset(self) -> None: ...
+
+    def act(self, obs: dict[str, np.ndarray], info: dict[str, Any] | None = None) -> int: ...
+
+
+def spl(success: bool, shortest_path: int, length: int) -> float:
+    """S * l / max(p, l) for one episode."""
+    if not success:
+        return 0.0
+    return float(shortest_path) / max(float(length), float(shortest_path), 1e-9)
+
+
+def eval_starts(env: Any, per_task: int, seed: int = 0) -> list[Start]:
+    """``per_task`` seeded start cells for every task of ``env`` (with replacement only
+    when a task has fewer valid starts than asked for)."""
+    u = env.unwrapped
+    rng = np.random.default_rng(seed)
+    out: list[Start] = []
+    for ti in range(len(u.tasks)):
+        cells = u.start_cells(ti)
+        idx = rng.choice(len(cells), size=per_task, replace=per_task > len(cells))
+        out.extend((ti, cells[int(i)]) for i in idx)
+    return out
+
+
+class RandomAgent:
+    """Uniformly random actions (the baseline every learning test beats)."""
+
+    def __init__(self, n_actions: int = 4, seed: int = 0) -> None:
+        self.n_actions = n_actions
+        self.rng = np.random.default_rng(seed)
+
+    def reset(self) -> None:
+        pass
+
+    def act(self, obs: dict[str, np.ndarray], info: dict[str, Any] | None = None) -> int:
+        return int(self.rng.integers(self.n_actions))
+
+
+@dataclass
+class EvalResult:
+    """Aggregate and per-episode evaluation figures."""
+
+    success_rate: float
+    spl: float
+    mean_length: float
+    mean_collisions: float
+    greedy: bool
+    episodes: list[dict[str, Any]] = field(repr=False, default_factory=list)
+
+    def summary(self) -> dict[str, float]:
+        return {"success_rate": self.success_rate, "spl": self.spl,
+                "mean_length": self.mean_length, "mean_collisions": self.mean_collisions,
+                "episodes": float(len(self.episodes))}
+
+
+def run_episode(actor: Actor, env: Any, task_index: int, start: tuple[int, int]
+                ) -> dict[str, Any]:
+    """One episode from a given start; returns its record (actions included)."""
+    actor.reset()
+    obs, info = env.reset(options={"task": task_index, "start_cell": start})
+    shortest = int(info["shortest_path"])
+    ret, length, collisions, actions = 0.0, 0, 0, []
+    done = False
+    while not done:
+        a = actor.act(obs, info)
+        actions.append(a)
+        obs, r, terminated, truncated, info = env.step(a)
+        ret += float(r)
+        length += 1
+        collisions += int(bool(info["collided"]))
+        done = terminated or truncated
+    success = bool(info["success"])
+    return {"task": info["task"], "task_index": task_index, "start": list(start),
+            "return": ret, "length": length, "success": success,
+            "spl": spl(success, shortest, length), "collisions": collisions,
+            "shortest_path": shortest, "actions": actions}
+
+
+def evaluate(policy: ActorCritic | Actor, env: Any, *, frozen: FrozenEncoder | None = None,
+             episodes_per_task: int = 20, seed: int = 0, greedy: bool = True,
+             starts: list[Start] | None = None,
+             progress: Callable[[int, int], None] | None = None) -> EvalResult:
+    """Run ``policy`` from fixed seeded starts.
+
+    Args:
+        policy: an :class:`ActorCritic` (wrapped in an :class:`Agent`) or any object with
+            ``reset()`` and ``act(obs, info)``.
+        env: the environment.
+        frozen: the frozen encoder of an ActorCritic that takes features.
+        episodes_per_task: starts per task (ignored when ``starts`` is given).
+        seed: seed of the start cells and of sampled actions.
+        greedy: argmax actions; False samples from the policy.
+        starts: explicit (task_index, cell) starts.
+        progress: called with (done, total) after each episode.
+    """
+    if isinstance(policy, ActorCritic):
+        was_training = policy.training
+        policy.eval()
+        actor: Actor = Agent(policy, frozen, greedy=greedy, seed=seed)
+    else:
+        was_training, actor = False, policy
+    starts = starts if starts is not None else eval_starts(env, episodes_per_task, seed)
+    records = []
+    for i, (ti, cell) in enumerate(starts):
+        records.append(run_episode(actor, env, ti, cell))
+        if progress is not None:
+            progress(i + 1, len(starts))
+    if isinstance(policy, ActorCritic) and was_training:
+        policy.train()
+    n = max(len(records), 1)
+    return EvalResult(
+        success_rate=sum(r["success"] for r in records) / n,
+        spl=sum(r["spl"] for r in records) / n,
+        mean_length=sum(r["length"] for r in records) / n,
+        mean_collisions=sum(r["collisions"] for r in records) / n,
+        greedy=greedy, episodes=records)

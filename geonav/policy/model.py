@@ -1,0 +1,160 @@
+"""The actor-critic network f of ALGORITHMS.md 4.0.
+
+Current view and target view -> encoder -> linear to ``embed_dim`` each (ReLU);
+previous action probabilities -> linear to ``action_embed_dim`` (ReLU);
+concatenate -> fully connected (ReLU) -> LSTMCell -> actor (``n_actions``) and
+critic (1) heads. SAVN's initialisation (allenai/savn ``models/model_io.py``,
+``utils/net_util.py``): Xavier-uniform weights and zero biases, actor weights
+column-normalised to std 0.01, critic to 1.0.
+
+The recurrent state is a tuple ``(h, c, p)``: LSTM hidden and cell ``(B, lstm_size)``
+and the previous action probabilities ``(B, n_actions)`` (zeros at episode start).
+
+``forward`` always takes a sequence: ``obs`` is ``(T, B, ...)``, the target
+``(B, ...)`` (constant over an episode). Acting calls it with T = 1; the loss
+recomputes a whole rollout with one call from the stored start state. The
+previous-action input of step t > 0 is the softmax of step t-1's logits,
+computed inside, so T calls with T = 1 and one call with T steps give the same
+numbers and the same graph. It is a plain ``nn.Module``, so
+``torch.func.functional_call(model, params, (obs, target, state))`` runs it from a
+name -> tensor dict (SAVN/ISAR inner updates).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from geonav.policy.config import NetConfig
+from geonav.policy.encoders import SmallCNN, feature_dim
+
+State = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
+
+
+def norm_col_init(weight: torch.Tensor, std: float, generator: torch.Generator | None = None
+                  ) -> None:
+    """SAVN's ``norm_col_init``: Gaussian rows rescaled to L2 norm ``std`` (in place)."""
+    with torch.no_grad():
+        x = torch.randn(weight.shape, generator=generator)
+        x *= std / torch.sqrt(x.pow(2).sum(1, keepdim=True))
+        weight.copy_(x)
+
+
+def _xavier_(m: nn.Module) -> None:
+    if isinstance(m, (nn.Linear, nn.Conv2d)):
+        fan_in = m.weight[0].numel()
+        fan_out = m.weight.shape[0] * (m.weight[0, 0].numel() if m.weight.dim() > 2 else 1)
+        bound = math.sqrt(6.0 / (fan_in + fan_out))
+        with torch.no_grad():
+            m.weight.uniform_(-bound, bound)
+            if m.bias is not None:
+                m.bias.zero_()
+
+
+class ActorCritic(nn.Module):
+    """Actor-critic with an LSTM core (see the module docstring).
+
+    Args:
+        cfg: the architecture. With ``encoder='cnn'`` the network owns a trainable
+            :class:`SmallCNN` and takes uint8 images; otherwise it takes features
+            ``(..., F)`` from a frozen encoder.
+    """
+
+    def __init__(self, cfg: NetConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.encoder: SmallCNN | None = SmallCNN(cfg.obs_size_px) if cfg.encoder == "cnn" \
+            else None
+        fdim = feature_dim(cfg)
+        self.obs_embed = nn.Linear(fdim, cfg.embed_dim)
+        self.target_embed = nn.Linear(fdim, cfg.embed_dim)
+        self.action_embed = nn.Linear(cfg.n_actions, cfg.action_embed_dim)
+        self.fc = nn.Linear(2 * cfg.embed_dim + cfg.action_embed_dim, cfg.hidden_size)
+        self.lstm = nn.LSTMCell(cfg.hidden_size, cfg.lstm_size)
+        self.actor = nn.Linear(cfg.lstm_size, cfg.n_actions)
+        self.critic = nn.Linear(cfg.lstm_size, 1)
+        self.reset_parameters()
+
+    def reset_parameters(self) -> None:
+        """SAVN's initialisation (draws from torch's global RNG)."""
+        self.apply(_xavier_)
+        with torch.no_grad():
+            self.lstm.bias_ih.zero_()
+            self.lstm.bias_hh.zero_()
+        norm_col_init(self.actor.weight, 0.01)
+        norm_col_init(self.critic.weight, 1.0)
+        with torch.no_grad():
+            self.actor.bias.zero_()
+            self.critic.bias.zero_()
+
+    @property
+    def takes_images(self) -> bool:
+        """True when inputs are uint8 images (trainable CNN), False for features."""
+        return self.encoder is not None
+
+    def initial_state(self, batch: int = 1) -> State:
+        """Zero LSTM state and zero previous action probabilities."""
+        z = torch.zeros(batch, self.cfg.lstm_size)
+        return (z, z.clone(), torch.zeros(batch, self.cfg.n_actions))
+
+    def _features(self, x: torch.Tensor) -> torch.Tensor:
+        """(M, N, N, 3) uint8 or (M, F) -> (M, F)."""
+        return self.encoder(x) if self.encoder is not None else x
+
+    def forward(self, obs: torch.Tensor, target: torch.Tensor, state: State
+                ) -> tuple[torch.Tensor, torch.Tensor, State]:
+        """Run T steps.
+
+        Args:
+            obs: current views, (T, B, N, N, 3) uint8 or (T, B, F) features.
+            target: the target view, (B, N, N, 3) uint8 or (B, F).
+            state: ``(h, c, p)`` before the first step.
+
+        Returns:
+            logits (T, B, n_actions), values (T, B) and the state after step T, whose
+            ``p`` is the softmax of the last logits.
+        """
+        T, B = obs.shape[0], obs.shape[1]
+        obs_f = self._features(obs.reshape(T * B, *obs.shape[2:]))
+        tgt_f = self._features(target)
+        obs_e = F.relu(self.obs_embed(obs_f)).view(T, B, -1)            # (T, B, E)
+        tgt_e = F.relu(self.target_embed(tgt_f)).unsqueeze(0).expand(T, B, -1)
+        # fc(cat(obs_e, tgt_e, act_e)) split by columns: the image part is batched over T.
+        w = self.fc.weight
+        k = 2 * self.cfg.embed_dim
+        pre = F.linear(torch.cat([obs_e, tgt_e], dim=-1), w[:, :k], self.fc.bias)  # (T, B, H)
+        h, c, p = state
+        hs = []
+        logits_steps = []
+        for t in range(T):
+            act_e = F.relu(self.action_embed(p))
+            x = F.relu(pre[t] + F.linear(act_e, w[:, k:]))
+            h, c = self.lstm(x, (h, c))
+            logit = self.actor(h)
+            p = F.softmax(logit, dim=-1)
+            hs.append(h)
+            logits_steps.append(logit)
+        logits = torch.stack(logits_steps)
+        values = self.critic(torch.stack(hs)).squeeze(-1)
+        return logits, values, (h, c, p)
+
+
+def detach_state(state: State) -> State:
+    """Cut the graph at a rollout boundary (A3C step 5; ISAR after an adaptive update)."""
+    return (state[0].detach(), state[1].detach(), state[2].detach())
+
+
+def param_dict(model: nn.Module) -> dict[str, torch.Tensor]:
+    """Name -> parameter, for ``torch.func.functional_call``."""
+    return dict(model.named_parameters())
+
+
+def arch_meta(cfg: NetConfig) -> dict[str, Any]:
+    """The JSON-able architecture record written into checkpoints."""
+    from geonav.policy.config import to_dict
+
+    return {"class": "ActorCritic", **to_dict(cfg)}
