@@ -116,11 +116,12 @@ def decode_tile(data: bytes) -> tuple[np.ndarray, np.ndarray | None]:
     fmt = sniff_format(data)
     if fmt is None:
         raise ValueError("not a PNG, JPEG or WebP image")
+    label = {"png": "PNG", "jpg": "JPEG", "webp": "WebP"}[fmt]
     if not _complete(data, fmt):
-        raise ValueError(f"truncated {fmt.upper()}")
+        raise ValueError(f"truncated {label}")
     img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if img is None or img.size == 0:
-        raise ValueError(f"undecodable {fmt.upper()}")
+        raise ValueError(f"undecodable {label}")
     if img.dtype == np.uint16:
         img = (img >> 8).astype(np.uint8)
     elif img.dtype != np.uint8:
