@@ -392,7 +392,11 @@ class Emulator:
                 continue
             with self._lock:
                 for msg in msgs:
-                    self._handle(msg)
+                    try:
+                        self._handle(msg)
+                    except (ValueError, TypeError, ArithmeticError, KeyError) as err:
+                        # A malformed request must not kill the emulated vehicle.
+                        log.warning("emulator: cannot handle %s: %s", msg.get_type(), err)
 
     def _drop_peer(self, addr: Any) -> None:
         peer = self._peers.pop(addr, None)
@@ -828,9 +832,9 @@ class Emulator:
 
     def _command(self, command: int, p: tuple[float, ...]) -> int:
         if command == M.MAV_CMD_DO_SET_MODE:
-            return self._cmd_set_mode(int(p[1]), int(p[2]))
+            return self._cmd_set_mode(int(_num(p[1])), int(_num(p[2])))
         if command == M.MAV_CMD_COMPONENT_ARM_DISARM:
-            return self._cmd_arm(p[0] >= 0.5, int(p[1]) == 21196)
+            return self._cmd_arm(_num(p[0]) >= 0.5, _num(p[1]) == 21196)
         if command == M.MAV_CMD_NAV_TAKEOFF:
             return self._cmd_takeoff(p[6])
         if command == M.MAV_CMD_NAV_LAND:
@@ -844,12 +848,12 @@ class Emulator:
             self._set_mode("rtl", why="MAV_CMD_NAV_RETURN_TO_LAUNCH")
             return M.MAV_RESULT_ACCEPTED
         if command == M.MAV_CMD_SET_MESSAGE_INTERVAL:
-            name = _MSG_NAME.get(int(p[0]))
+            name = _MSG_NAME.get(int(_num(p[0])))
             if name is None:
                 return M.MAV_RESULT_UNSUPPORTED
-            if p[1] < 0:
+            if _num(p[1]) < 0:
                 self._intervals[name] = 0.0
-            elif p[1] == 0:
+            elif _num(p[1]) == 0:
                 self._intervals[name] = 1.0 / self.cfg.position_rate_hz
             else:
                 self._intervals[name] = p[1] / 1e6
@@ -862,7 +866,7 @@ class Emulator:
             elif command == M.MAV_CMD_GET_HOME_POSITION:
                 name = "HOME_POSITION"
             else:
-                name = _MSG_NAME.get(int(p[0]), "")
+                name = _MSG_NAME.get(int(_num(p[0])), "")
             if name not in _MSG_NAME.values():
                 return M.MAV_RESULT_UNSUPPORTED
             if name in ("HOME_POSITION", "GPS_GLOBAL_ORIGIN") and self.origin is None:
@@ -960,6 +964,11 @@ class Emulator:
 
 
 _MSG_NAME = {v: k for k, v in M.MSG_ID.items()}
+
+
+def _num(value: float) -> float:
+    """A command parameter with NaN ("unset") read as 0."""
+    return 0.0 if value is None or math.isnan(value) else float(value)
 
 
 def run_standalone(config: EmulatorConfig, stop: threading.Event, on_ready: Any = None) -> None:

@@ -1,0 +1,376 @@
+"""The MAVSDK backend (native ``mavsdk>=4``: ``from mavsdk.asyncio import Mavsdk``).
+
+MAVSDK's asyncio API runs on an event loop in a thread of our own; the
+synchronous :class:`~geonav.mavlink_bridge.vehicle.Vehicle` methods submit
+coroutines to it and wait with a timeout. Plugins used:
+
+* ``TelemetryAsync``: LOCAL_POSITION_NED (``subscribe_position_velocity_ned``
+  with ``set_rate_position_velocity_ned``, which sends
+  SET_MESSAGE_INTERVAL, so ArduPilot streams it), home, EKF origin
+  (``get_gps_global_origin``), STATUSTEXT, landed state.
+* ``ActionAsync``: arm, disarm, land, return to launch, set_gps_global_origin.
+* ``MavlinkDirectAsync``: the HEARTBEAT itself (``system_status`` and the raw
+  ``custom_mode``, which MAVSDK's telemetry does not expose; we must gate on
+  STANDBY), DO_SET_MODE and NAV_TAKEOFF with their COMMAND_ACK, and the
+  SET_POSITION_TARGET_LOCAL_NED setpoints.
+
+Setpoints go out one per call through ``MavlinkDirect`` rather than
+``OffboardAsync.set_position_ned`` by default: the Offboard plugin resends
+the last setpoint at 20 Hz on its own, and the only way to stop that is
+``Offboard.stop()``, which also commands Hold. That hidden resender defeats
+the policy-liveness pump (MAVSDK-Python#374) and the Hold would fight an
+operator takeover. ``use_offboard_plugin=True`` selects the plugin anyway
+(same message: LOCAL_NED, type_mask 2552), and then ``stop_setpoints``
+calls ``Offboard.stop()``. ``health.is_global_position_ok``/``is_armable`` are
+not used: they can stay false on ArduPilot while it flies.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import concurrent.futures
+import json
+import logging
+import math
+import threading
+import time
+from collections.abc import Awaitable, Callable
+from typing import Any, TypeVar
+
+from geonav.errors import CommandRejected, FlightError, FlightTimeout
+from geonav.geo import LocalNED, LonLat
+from geonav.mavlink_bridge import modes as M
+from geonav.mavlink_bridge.vehicle import Connection, VehicleState
+
+log = logging.getLogger(__name__)
+T = TypeVar("T")
+
+
+class MavsdkVehicle:
+    """A Vehicle over native MAVSDK.
+
+    Args:
+        conn: parsed connection.
+        system_id: only accept this autopilot system id (None: the first autopilot).
+        use_offboard_plugin: stream setpoints with ``OffboardAsync`` (see module docs).
+    """
+
+    def __init__(
+        self,
+        conn: Connection,
+        *,
+        system_id: int | None = None,
+        use_offboard_plugin: bool = False,
+    ) -> None:
+        self.conn = conn
+        self.autopilot = ""
+        self.on_statustext: Callable[[int, str], None] | None = None
+        self._want_sysid = system_id
+        self._use_offboard = use_offboard_plugin
+        self._loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(target=self._loop.run_forever, name="mavsdk-loop", daemon=True)
+        self._lock = threading.Lock()
+        self._tasks: list[asyncio.Task[Any]] = []
+        self._mav: Any = None
+        self._sys: Any = None
+        self._sysid = 0
+        self._hb: dict[str, Any] | None = None
+        self._hb_t = -math.inf
+        self._pos: LocalNED | None = None
+        self._vel: tuple[float, float, float] | None = None
+        self._pos_t = -math.inf
+        self._origin: LonLat | None = None
+        self._home: LonLat | None = None
+        self._landed = 0
+        self._texts: collections.deque[str] = collections.deque(maxlen=20)
+        self._closed = False
+        self._offboard_streaming = False
+
+    # ------------------------------------------------------------ plumbing
+    def _run(self, coro: Awaitable[T], timeout_s: float, what: str) -> T:
+        fut = asyncio.run_coroutine_threadsafe(coro, self._loop)  # type: ignore[arg-type]
+        try:
+            return fut.result(timeout_s)
+        except concurrent.futures.TimeoutError as err:
+            fut.cancel()
+            raise FlightTimeout(f"MAVSDK: {what} not done within {timeout_s:.1f} s") from err
+
+    def connect(self, timeout_s: float) -> None:
+        """Add the connection, wait for ``first_autopilot`` and its HEARTBEAT."""
+        try:
+            from mavsdk.asyncio import ComponentType, Configuration, Mavsdk
+            from mavsdk.asyncio.plugins.action import ActionAsync
+            from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync
+            from mavsdk.asyncio.plugins.offboard import OffboardAsync
+            from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
+        except ImportError as err:
+            raise FlightError(
+                f"the MAVSDK backend needs the native mavsdk>=4 package ({err}); "
+                "pip install 'mavsdk>=4.1,<5' or use --backend pymavlink"
+            ) from err
+        self._thread.start()
+
+        async def setup() -> None:
+            self._mav = Mavsdk(Configuration.create_with_component_type(ComponentType.COMPANION_COMPUTER))
+            await self._mav.add_any_connection(self.conn.mavsdk())
+            deadline = time.monotonic() + timeout_s
+            while True:
+                system = await self._mav.first_autopilot(timeout_s=max(0.1, deadline - time.monotonic()))
+                if system is None:
+                    raise FlightTimeout(
+                        f"no autopilot on {self.conn.mavsdk()!r} within {timeout_s:.0f} s "
+                        "(MAVSDK first_autopilot); check the connection URL"
+                    )
+                sysid = await system.get_system_id()
+                if self._want_sysid is None or sysid == self._want_sysid:
+                    break
+                if time.monotonic() > deadline:
+                    raise FlightTimeout(f"autopilot system id {self._want_sysid} not found")
+                await asyncio.sleep(0.2)
+            self._sys, self._sysid = system, sysid
+            self._act = ActionAsync(system)
+            self._telemetry = TelemetryAsync(system)
+            self._direct = MavlinkDirectAsync(system)
+            self._offboard = OffboardAsync(system)
+            kind = await system.autopilot_type()
+            self.autopilot = {1: M.PX4, 2: M.ARDUPILOT}.get(int(kind), "")
+            loop = asyncio.get_running_loop()
+            for coro in (self._watch_heartbeat(), self._watch_position(), self._watch_texts(),
+                         self._watch_home(), self._watch_landed()):
+                self._tasks.append(loop.create_task(coro))
+
+        self._run(setup(), timeout_s + 5.0, "connect")
+        deadline = time.monotonic() + timeout_s
+        while self._hb is None:
+            if time.monotonic() > deadline:
+                raise FlightTimeout("MAVSDK saw the autopilot but no HEARTBEAT from its component 1")
+            time.sleep(0.02)
+        if not self.autopilot:
+            self.autopilot = M.flavour_from_heartbeat(int(self._hb["autopilot"]))
+        log.info("MAVSDK connected to %s autopilot sysid %d on %s", self.autopilot, self._sysid,
+                 self.conn.mavsdk())
+
+    async def _watch_heartbeat(self) -> None:
+        async for msg in self._direct.subscribe_message("HEARTBEAT"):
+            if msg.system_id != self._sysid or msg.component_id != M.MAV_COMP_ID_AUTOPILOT1:
+                continue
+            fields = json.loads(msg.fields_json)
+            if fields.get("autopilot") == M.MAV_AUTOPILOT_INVALID:
+                continue
+            with self._lock:
+                self._hb = fields
+                self._hb_t = time.monotonic()
+
+    async def _watch_position(self) -> None:
+        async for pv in self._telemetry.subscribe_position_velocity_ned():
+            with self._lock:
+                p, v = pv.position, pv.velocity
+                self._pos = LocalNED(p.north_m, p.east_m, p.down_m)
+                self._vel = (v.north_m_s, v.east_m_s, v.down_m_s)
+                self._pos_t = time.monotonic()
+
+    async def _watch_texts(self) -> None:
+        async for st in self._telemetry.subscribe_status_text():
+            text = str(st.text)
+            severity = int(getattr(st.type, "value", 6))
+            self._texts.append(text)
+            log.log(logging.WARNING if severity >= 3 else logging.INFO, "autopilot: %s", text)
+            if self.on_statustext is not None:
+                self.on_statustext(severity, text)
+
+    async def _watch_home(self) -> None:
+        async for h in self._telemetry.subscribe_home():
+            if math.isfinite(h.latitude_deg) and (h.latitude_deg or h.longitude_deg):
+                with self._lock:
+                    self._home = LonLat(h.longitude_deg, h.latitude_deg, h.absolute_altitude_m)
+
+    async def _watch_landed(self) -> None:
+        async for ls in self._telemetry.subscribe_landed_state():
+            # MAVSDK LandedState: UNKNOWN 0, ON_GROUND 1, IN_AIR 2, TAKING_OFF 3, LANDING 4.
+            self._landed = int(ls)
+
+    def close(self) -> None:
+        """Cancel subscriptions, destroy MAVSDK and stop the loop."""
+        if self._closed:
+            return
+        self._closed = True
+        if self._thread.is_alive():
+            async def shutdown() -> None:
+                for task in self._tasks:
+                    task.cancel()
+                await asyncio.gather(*self._tasks, return_exceptions=True)
+                if self._mav is not None:
+                    self._mav.destroy()
+
+            try:
+                self._run(shutdown(), 5.0, "shutdown")
+            except FlightError as err:
+                log.warning("MAVSDK shutdown: %s", err)
+            self._loop.call_soon_threadsafe(self._loop.stop)
+            self._thread.join(timeout=2.0)
+
+    # --------------------------------------------------------------- state
+    def state(self) -> VehicleState:
+        """The latest telemetry snapshot."""
+        now = time.monotonic()
+        with self._lock:
+            hb = self._hb
+            if hb is None:
+                raise FlightError("not connected: no autopilot heartbeat yet")
+            return VehicleState(
+                autopilot=self.autopilot,
+                system_status=int(hb["system_status"]),
+                mode=M.decode_mode(self.autopilot, int(hb["custom_mode"])),
+                armed=bool(int(hb["base_mode"]) & M.MAV_MODE_FLAG_SAFETY_ARMED),
+                heartbeat_age_s=now - self._hb_t,
+                position=self._pos,
+                velocity_ned_mps=self._vel,
+                position_age_s=now - self._pos_t,
+                origin=self._origin,
+                home=self._home,
+                landed_state=self._landed,
+                last_statustext=self._texts[-1] if self._texts else "",
+            )
+
+    # ------------------------------------------------------------ commands
+    def _command(self, command: int, params: tuple[float, ...], timeout_s: float) -> int:
+        from mavsdk.plugins.mavlink_direct import MavlinkMessage
+
+        p = tuple(params) + (0.0,) * (7 - len(params))
+        fields: dict[str, Any] = {
+            "target_system": self._sysid, "target_component": M.MAV_COMP_ID_AUTOPILOT1,
+            "command": command, "confirmation": 0,
+        }
+        for i, v in enumerate(p, start=1):
+            # JSON has no NaN; 0 means "unchanged/default" for the params used here.
+            fields[f"param{i}"] = 0.0 if math.isnan(float(v)) else float(v)
+        msg = MavlinkMessage("COMMAND_LONG", 0, 0, self._sysid, M.MAV_COMP_ID_AUTOPILOT1,
+                             json.dumps(fields))
+        ack = self._run(self._direct.send_command(msg), timeout_s, f"command {command}")
+        if not ack.fields_json:
+            raise FlightTimeout(f"no COMMAND_ACK for MAV_CMD {command} (MAVSDK)")
+        return int(json.loads(ack.fields_json)["result"])
+
+    def _checked(self, command: int, params: tuple[float, ...], timeout_s: float, what: str) -> None:
+        result = self._command(command, params, timeout_s)
+        if result != M.MAV_RESULT_ACCEPTED:
+            text = self._texts[-1] if self._texts else ""
+            raise CommandRejected(
+                f"{what}: MAV_CMD {command} answered {M.MAV_RESULT_NAMES.get(result, result)}"
+                + (f" (autopilot says: {text!r})" if text else "")
+            )
+
+    def _action(self, name: str, timeout_s: float) -> None:
+        from mavsdk.plugins.action import ActionError
+
+        coro = getattr(self._act, name)()
+        try:
+            self._run(coro, timeout_s, f"action {name}")
+        except ActionError as err:
+            text = self._texts[-1] if self._texts else ""
+            raise CommandRejected(
+                f"{name}: MAVSDK action failed ({err})" + (f" (autopilot says: {text!r})" if text else "")
+            ) from err
+
+    def request_telemetry(self, rate_hz: float, timeout_s: float) -> None:
+        """MAVSDK ``set_rate_*`` (SET_MESSAGE_INTERVAL) and the EKF origin."""
+        from mavsdk.plugins.telemetry import TelemetryError
+
+        async def rates() -> None:
+            for name, hz in (("set_rate_position_velocity_ned", rate_hz), ("set_rate_home", 0.5),
+                             ("set_rate_landed_state", 1.0)):
+                try:
+                    await getattr(self._telemetry, name)(hz)
+                except TelemetryError as err:
+                    log.warning("MAVSDK %s: %s", name, err)
+
+        self._run(rates(), timeout_s * 4, "telemetry rates")
+        self.request_message("GPS_GLOBAL_ORIGIN", timeout_s)
+
+    def request_message(self, name: str, timeout_s: float) -> bool:
+        """Ask for the EKF origin (``get_gps_global_origin``) or any message by id."""
+        if name == "GPS_GLOBAL_ORIGIN":
+            from mavsdk.plugins.telemetry import TelemetryError
+
+            try:
+                o = self._run(self._telemetry.get_gps_global_origin(), timeout_s, "GPS origin")
+            except (TelemetryError, FlightError) as err:
+                log.debug("GPS_GLOBAL_ORIGIN not available yet: %s", err)
+                return False
+            with self._lock:
+                self._origin = LonLat(o.longitude_deg, o.latitude_deg, o.altitude_m)
+            return True
+        return self._command(M.MAV_CMD_REQUEST_MESSAGE, (M.MSG_ID[name],), timeout_s) == 0
+
+    def set_origin(self, origin: LonLat) -> None:
+        """SET_GPS_GLOBAL_ORIGIN through ``Action.set_gps_global_origin``."""
+        from mavsdk.plugins.action import ActionError
+
+        try:
+            self._run(
+                self._act.set_gps_global_origin(origin.lat_deg, origin.lon_deg, origin.alt_m),
+                5.0, "set origin",
+            )
+        except ActionError as err:
+            raise CommandRejected(f"SET_GPS_GLOBAL_ORIGIN failed: {err}") from err
+
+    def set_mode(self, name: str, timeout_s: float) -> None:
+        """DO_SET_MODE by generic name, ACK checked (MavlinkDirect)."""
+        params = M.encode_mode(self.autopilot, name)
+        self._checked(M.MAV_CMD_DO_SET_MODE, tuple(float(v) for v in params), timeout_s, f"mode {name}")
+
+    def arm(self, timeout_s: float) -> None:
+        """``Action.arm``."""
+        self._action("arm", timeout_s)
+
+    def disarm(self, timeout_s: float) -> None:
+        """``Action.disarm``."""
+        self._action("disarm", timeout_s)
+
+    def takeoff(self, alt_m: float, timeout_s: float) -> None:
+        """NAV_TAKEOFF with p7 = altitude above home (ArduPilot GUIDED semantics)."""
+        self._checked(M.MAV_CMD_NAV_TAKEOFF, (0, 0, 0, math.nan, 0, 0, float(alt_m)), timeout_s,
+                      f"take-off to {alt_m:.1f} m")
+
+    def land(self, timeout_s: float) -> None:
+        """``Action.land`` (MAV_CMD_NAV_LAND)."""
+        self._action("land", timeout_s)
+
+    def return_to_launch(self, timeout_s: float) -> None:
+        """``Action.return_to_launch``."""
+        self._action("return_to_launch", timeout_s)
+
+    def send_position_target(self, target: LocalNED, yaw_deg: float) -> None:
+        """SET_POSITION_TARGET_LOCAL_NED, frame 1, type_mask 2552."""
+        if self._use_offboard:
+            from mavsdk.plugins.offboard import PositionNedYaw
+
+            sp = PositionNedYaw(target.north_m, target.east_m, target.down_m, yaw_deg)
+            self._run(self._offboard.set_position_ned(sp), 1.0, "offboard setpoint")
+            self._offboard_streaming = True
+            return
+        from mavsdk.plugins.mavlink_direct import MavlinkMessage
+
+        fields = {
+            "time_boot_ms": 0, "target_system": self._sysid,
+            "target_component": M.MAV_COMP_ID_AUTOPILOT1,
+            "coordinate_frame": M.MAV_FRAME_LOCAL_NED, "type_mask": M.TYPE_MASK_POSITION_YAW,
+            "x": target.north_m, "y": target.east_m, "z": target.down_m,
+            "vx": 0.0, "vy": 0.0, "vz": 0.0, "afx": 0.0, "afy": 0.0, "afz": 0.0,
+            "yaw": math.radians(yaw_deg), "yaw_rate": 0.0,
+        }
+        msg = MavlinkMessage("SET_POSITION_TARGET_LOCAL_NED", 0, 0, self._sysid,
+                             M.MAV_COMP_ID_AUTOPILOT1, json.dumps(fields))
+        self._run(self._direct.send_message(msg), 1.0, "setpoint")
+
+    def stop_setpoints(self) -> None:
+        """Stop the Offboard plugin's own 20 Hz resend (only with ``use_offboard_plugin``)."""
+        if self._use_offboard and self._offboard_streaming:
+            from mavsdk.plugins.offboard import OffboardError
+
+            self._offboard_streaming = False
+            try:
+                self._run(self._offboard.stop(), 3.0, "offboard stop")
+            except OffboardError as err:
+                log.warning("Offboard.stop: %s", err)
