@@ -420,7 +420,7 @@ def _save_sidecar(cache: Path, meta: dict[str, Any], *, template: str, attributi
     )
     runs = list(meta.get("runs", []))[-19:]
     runs.append(dict(zoom=zoom, bbox_lonlat=list(bbox_lonlat),
-                     **{k: v for k, v in asdict(result).items() if k not in ("folder",)}))
+                     **{k: v for k, v in asdict(result).items() if k not in ("folder", "zoom")}))
     meta["runs"] = runs
     _write_atomic_text(cache / SIDECAR, json.dumps(meta, indent=2))
 
