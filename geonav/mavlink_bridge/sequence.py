@@ -253,18 +253,32 @@ def _sleep_alive(seconds: float, alive: Callable[[], None] | None) -> None:
 def end_flight(vehicle: Vehicle, end: str, t: Timeouts) -> VehicleState:
     """LAND or RTL, then wait for disarm.
 
+    The command is resent while it gets no ACK (a link that is down may come
+    back; meanwhile the autopilot's own failsafe acts), until ``t.landing_s``.
+
     Raises:
         FlightTimeout: still armed after ``t.landing_s``.
+        CommandRejected: the autopilot refused LAND/RTL.
     """
-    s = vehicle.state()
-    if not s.armed:
-        return s
-    if end == "rtl":
-        vehicle.return_to_launch(t.command_s)
-    else:
-        vehicle.land(t.command_s)
+    deadline = time.monotonic() + t.landing_s
+    while True:
+        s = vehicle.state()
+        if not s.armed:
+            return s
+        try:
+            if end == "rtl":
+                vehicle.return_to_launch(t.command_s)
+            else:
+                vehicle.land(t.command_s)
+            break
+        except FlightTimeout as err:
+            if time.monotonic() > deadline:
+                raise
+            log.warning("%s not acknowledged (%s); retrying", end.upper(), err)
+            time.sleep(0.2)
     log.info("%s commanded; waiting for disarm", end.upper())
-    return wait_until(vehicle, lambda st: not st.armed, t.landing_s, f"{end} and disarm", poll_s=0.1)
+    left = max(1.0, deadline - time.monotonic())
+    return wait_until(vehicle, lambda st: not st.armed, left, f"{end} and disarm", poll_s=0.1)
 
 
 def horizontal_distance_m(a: LocalNED, b: LocalNED) -> float:
