@@ -167,10 +167,12 @@ class A3CWorker:
         view, target = obs_inputs(obs, info, self.frozen)
         while not (terminated or truncated):
             self.sync()
+            with torch.no_grad():  # acting encodes the target once per rollout
+                target_feat = self.model.features(target[None])
             ro = Rollout(detach_state(state), target)
             with torch.no_grad():
                 for _ in range(cfg.t_max):
-                    logits, _, state = self.model(view[None, None], target[None], state)
+                    logits, _, state = self.model(view[None, None], target_feat, state)
                     a = choose_action(logits[0, 0], False, self.rng)
                     obs, r, terminated, truncated, info = self.env.step(a)
                     ro.views.append(view)
@@ -185,7 +187,7 @@ class A3CWorker:
                 if terminated or (truncated and not cfg.loss.bootstrap_on_truncation):
                     bootstrap = 0.0
                 else:  # V(s_next): an extra forward that does not advance the state
-                    _, v_next, _ = self.model(view[None, None], target[None], state)
+                    _, v_next, _ = self.model(view[None, None], target_feat, state)
                     bootstrap = float(v_next[0, 0])
             loss = self.update(ro, bootstrap)
             pl += loss.policy.item()

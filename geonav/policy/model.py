@@ -101,9 +101,14 @@ class ActorCritic(nn.Module):
         z = torch.zeros(batch, self.cfg.lstm_size)
         return (z, z.clone(), torch.zeros(batch, self.cfg.n_actions))
 
-    def _features(self, x: torch.Tensor) -> torch.Tensor:
-        """(M, N, N, 3) uint8 or (M, F) -> (M, F)."""
-        return self.encoder(x) if self.encoder is not None else x
+    def features(self, x: torch.Tensor) -> torch.Tensor:
+        """Views to encoder features: (M, N, N, 3) uint8 -> (M, F); float (M, F) passes through.
+
+        Acting can encode the episode's target once and pass the features to ``forward``.
+        """
+        if self.encoder is not None and x.dtype == torch.uint8:
+            return self.encoder(x)
+        return x
 
     def forward(self, obs: torch.Tensor, target: torch.Tensor, state: State
                 ) -> tuple[torch.Tensor, torch.Tensor, State]:
@@ -111,7 +116,8 @@ class ActorCritic(nn.Module):
 
         Args:
             obs: current views, (T, B, N, N, 3) uint8 or (T, B, F) features.
-            target: the target view, (B, N, N, 3) uint8 or (B, F).
+            target: the target view, (B, N, N, 3) uint8 or (B, F) features (frozen encoder,
+                or the trainable CNN's output from :meth:`features`).
             state: ``(h, c, p)`` before the first step.
 
         Returns:
@@ -119,8 +125,8 @@ class ActorCritic(nn.Module):
             ``p`` is the softmax of the last logits.
         """
         T, B = obs.shape[0], obs.shape[1]
-        obs_f = self._features(obs.reshape(T * B, *obs.shape[2:]))
-        tgt_f = self._features(target)
+        obs_f = self.features(obs.reshape(T * B, *obs.shape[2:]))
+        tgt_f = self.features(target)
         obs_e = F.relu(self.obs_embed(obs_f)).view(T, B, -1)            # (T, B, E)
         tgt_e = F.relu(self.target_embed(tgt_f)).unsqueeze(0).expand(T, B, -1)
         # fc(cat(obs_e, tgt_e, act_e)) split by columns: the image part is batched over T.

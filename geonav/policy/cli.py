@@ -1,0 +1,244 @@
+"""``geonav train`` and ``geonav eval``: thin argparse front ends over the policy library.
+
+Wire into ``geonav/cli.py`` with ``geonav.policy.cli.add_parser(subparsers)``; each
+subparser sets ``func`` to its handler (``run_train`` / ``run_eval``), which returns
+an exit status and raises :class:`geonav.errors.GeonavError` on bad input. This
+module imports torch only inside the handlers, so ``geonav --help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+from geonav.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class EnvFactory:
+    """A picklable recipe for the training/evaluation environment (one per worker).
+
+    Attributes:
+        scene_dir: scene package folder.
+        tasks_file: task set JSON.
+        alt_m: fly every task at this altitude (None: the tasks' own).
+        obs_size_px: camera image side (None: the task set's camera).
+        max_steps: episode cap override (None: the tasks' own).
+    """
+
+    scene_dir: str
+    tasks_file: str
+    alt_m: float | None = None
+    obs_size_px: int | None = None
+    max_steps: int | None = None
+
+    def __call__(self) -> Any:
+        from geonav.camera import Camera
+        from geonav.env import GeoNavEnv
+        from geonav.scene import Scene
+        from geonav.tasks import TaskSet
+
+        scene = Scene.open(self.scene_dir)
+        ts = TaskSet.load(self.tasks_file)
+        if self.alt_m is not None:
+            ts = replace(ts, tasks=[t if t.alt_m == self.alt_m else t.with_alt(self.alt_m)
+                                    for t in ts.tasks])
+        camera = ts.camera if self.obs_size_px is None else Camera(self.obs_size_px,
+                                                                   ts.camera.fov_deg)
+        return GeoNavEnv(scene, ts, camera=camera, max_steps=self.max_steps)
+
+
+def _load_toml(path: str | None) -> dict[str, Any]:
+    if path is None:
+        return {}
+    import tomllib
+
+    try:
+        with open(path, "rb") as f:
+            return tomllib.load(f)
+    except FileNotFoundError as err:
+        raise ConfigError(f"config file {path} does not exist") from err
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError(f"config file {path} is not valid TOML: {err}") from err
+
+
+def add_parser(subparsers: Any) -> None:
+    """Register ``train`` and ``eval`` on an argparse subparsers object."""
+    from geonav.policy.config import ENCODERS, A3CConfig, NetConfig, field_help
+
+    nh, ah = field_help(NetConfig), field_help(A3CConfig)
+    p = subparsers.add_parser("train", help="train a navigation policy (A3C)",
+                              description="Train a policy on a scene's tasks. The run folder "
+                              "gets config.json, metrics.csv, checkpoints/ and "
+                              "learning_curve.png.")
+    p.add_argument("--algo", default="a3c", choices=["a3c"], help="training algorithm")
+    p.add_argument("--scene", required=True, help="scene package folder")
+    p.add_argument("--tasks", required=True, help="task set JSON")
+    p.add_argument("--altitude", type=float, default=None, metavar="M",
+                   help="fly every task at this altitude in metres (default: the tasks')")
+    p.add_argument("--episodes", type=int, default=None, help=ah["episodes"])
+    p.add_argument("--workers", type=int, default=None, help=ah["workers"])
+    p.add_argument("--out", required=True, metavar="RUN_DIR", help="run folder")
+    p.add_argument("--resume", default=None, metavar="CKPT", help="continue from a checkpoint "
+                   "(episode count, weights, optimiser and RNG state)")
+    p.add_argument("--seed", type=int, default=None, help=ah["seed"])
+    p.add_argument("--obs-size", type=int, default=None, metavar="PX",
+                   help="observation side in pixels (default: the task set's camera)")
+    p.add_argument("--encoder", choices=ENCODERS, default=None, help=nh["encoder"])
+    p.add_argument("--encoder-weights", default=None, metavar="PATH", help=nh["encoder_weights"])
+    p.add_argument("--t-max", type=int, default=None, help=ah["t_max"])
+    p.add_argument("--lr", type=float, default=None, help=ah["lr"])
+    p.add_argument("--max-steps", type=int, default=None, help="episode cap override")
+    p.add_argument("--checkpoint-every", type=int, default=None, help=ah["checkpoint_every"])
+    p.add_argument("--config", default=None, metavar="TOML",
+                   help="TOML file with [net] and [a3c] tables; command-line options win")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=run_train)
+
+    e = subparsers.add_parser("eval", help="evaluate a policy checkpoint",
+                              description="Success rate, SPL, mean length and collisions from "
+                              "fixed seeded starts.")
+    e.add_argument("checkpoint", metavar="CKPT", help="policy checkpoint (.pt)")
+    e.add_argument("--scene", required=True, help="scene package folder")
+    e.add_argument("--tasks", required=True, help="task set JSON")
+    e.add_argument("--altitude", type=float, default=None, metavar="M",
+                   help="fly every task at this altitude (default: the tasks')")
+    e.add_argument("--episodes", type=int, default=20, help="seeded starts per task")
+    e.add_argument("--greedy", action="store_true", help="argmax actions (default: sampled)")
+    e.add_argument("--seed", type=int, default=0, help="seed of the starts and sampled actions")
+    e.add_argument("--max-steps", type=int, default=None, help="episode cap override")
+    e.add_argument("--json", default=None, metavar="FILE", help="also write the results as JSON")
+    e.add_argument("--no-progress", action="store_true", help="no progress bar")
+    e.set_defaults(func=run_eval)
+
+
+def resolve_train_configs(args: argparse.Namespace) -> tuple[Any, Any]:
+    """(NetConfig, A3CConfig) from defaults, the TOML file and the command line."""
+    from geonav.policy.config import A3CConfig, LossConfig, NetConfig, from_dict
+
+    toml = _load_toml(getattr(args, "config", None))
+    unknown = sorted(set(toml) - {"net", "a3c"})
+    if unknown:
+        raise ConfigError(f"unknown table(s) {unknown} in {args.config}; use [net] and [a3c]")
+    net_d = dict(toml.get("net", {}))
+    a3c_d = dict(toml.get("a3c", {}))
+    for key, val in (("encoder", args.encoder), ("encoder_weights", args.encoder_weights),
+                     ("obs_size_px", args.obs_size)):
+        if val is not None:
+            net_d[key] = val
+    for key, val in (("episodes", args.episodes), ("workers", args.workers),
+                     ("seed", args.seed), ("t_max", args.t_max), ("lr", args.lr),
+                     ("checkpoint_every", args.checkpoint_every)):
+        if val is not None:
+            a3c_d[key] = val
+    if "loss" in a3c_d and not isinstance(a3c_d["loss"], dict):
+        raise ConfigError("[a3c.loss] must be a table")
+    a3c_d.setdefault("loss", {})
+    a3c = from_dict(A3CConfig, {**a3c_d, "loss": a3c_d["loss"] or {}})
+    if not isinstance(a3c.loss, LossConfig):
+        raise ConfigError("invalid [a3c.loss] table")
+    return from_dict(NetConfig, net_d) if net_d else None, a3c
+
+
+class _TqdmProgress:
+    """Turns trainer callbacks into a tqdm bar (success-rate moving average in the postfix)."""
+
+    def __init__(self, disable: bool) -> None:
+        from geonav.policy.callbacks import Callback
+
+        from tqdm import tqdm
+
+        class _CB(Callback):
+            def on_train_start(cb, info: dict[str, Any]) -> None:
+                cb.bar = tqdm(total=info["episodes"], initial=info["start_episode"],
+                              unit="ep", disable=disable, dynamic_ncols=True)
+                cb.recent: list[float] = []
+
+            def on_episode(cb, record: dict[str, Any]) -> None:
+                cb.recent = (cb.recent + [float(record["success"])])[-100:]
+                cb.bar.update(1)
+                cb.bar.set_postfix(sr=f"{sum(cb.recent) / len(cb.recent):.2f}",
+                                   len=record["length"])
+
+            def on_train_end(cb, result: Any) -> None:
+                if hasattr(cb, "bar"):
+                    cb.bar.close()
+
+        self.callback = _CB()
+
+
+def run_train(args: argparse.Namespace) -> int:
+    """Handler of ``geonav train``."""
+    from geonav.policy.a3c import A3CTrainer
+
+    if args.algo != "a3c":
+        raise ConfigError(f"--algo {args.algo!r} is not available yet; use a3c")
+    net_cfg, a3c = resolve_train_configs(args)
+    obs = args.obs_size if args.obs_size is not None else (
+        net_cfg.obs_size_px if net_cfg is not None else None)
+    factory = EnvFactory(str(args.scene), str(args.tasks), args.altitude, obs,
+                         args.max_steps)
+    if net_cfg is not None and obs is None:  # take the task set camera's size
+        net_cfg = replace(net_cfg, obs_size_px=int(factory().observation_space["image"].shape[0]))
+    progress = _TqdmProgress(args.no_progress)
+    trainer = A3CTrainer(factory, net_cfg, a3c, out_dir=args.out, resume=args.resume,
+                         callbacks=[progress.callback])
+    result = trainer.train()
+    sr = [r["success"] for r in result.records[-100:]]
+    print(f"trained {result.episodes} episodes ({result.env_steps} steps, "
+          f"{result.steps_per_s:.0f} steps/s); last-100 success rate "
+          f"{(sum(sr) / len(sr)) if sr else float('nan'):.2f}; checkpoint {result.checkpoint}")
+    return 0
+
+
+def run_eval(args: argparse.Namespace) -> int:
+    """Handler of ``geonav eval``."""
+    from tqdm import tqdm
+
+    from geonav.policy.checkpoint import check_compatible, load_checkpoint
+    from geonav.policy.evaluation import evaluate
+
+    ckpt = load_checkpoint(args.checkpoint)
+    factory = EnvFactory(str(args.scene), str(args.tasks), args.altitude,
+                         int(ckpt.meta["obs_size_px"]), args.max_steps)
+    env = factory()
+    check_compatible(ckpt.meta, env, path=ckpt.path)
+    model = ckpt.build_model()
+    bar = tqdm(total=args.episodes * len(env.unwrapped.tasks), unit="ep",
+               disable=args.no_progress)
+    res = evaluate(model, env, frozen=ckpt.build_encoder(), episodes_per_task=args.episodes,
+                   seed=args.seed, greedy=args.greedy,
+                   progress=lambda done, total: bar.update(1))
+    bar.close()
+    summary = {"checkpoint": str(ckpt.path), "mode": "greedy" if args.greedy else "sampled",
+               **res.summary()}
+    print(json.dumps(summary))
+    if args.json:
+        out = Path(args.json)
+        tmp = out.with_name(f".{out.name}.tmp")
+        tmp.write_text(json.dumps({**summary, "per_episode": res.episodes}, indent=1))
+        os.replace(tmp, out)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Stand-alone entry (``python -m geonav.policy.cli train ...``) for use before wiring."""
+    from geonav.errors import GeonavError
+
+    parser = argparse.ArgumentParser(prog="geonav-policy")
+    add_parser(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args))
+    except GeonavError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
