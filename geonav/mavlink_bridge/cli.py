@@ -1,0 +1,121 @@
+"""``geonav fly`` and ``geonav emulator`` / ``geonav mavlink emulate``.
+
+Thin: parses arguments, calls :func:`geonav.mavlink_bridge.flight.fly` or the
+emulator, and prints a one-line result (the CLI is the only place that prints).
+"""
+
+from __future__ import annotations
+
+import argparse
+import threading
+from typing import Any
+
+from geonav.errors import ConfigError
+
+
+def _cell(text: str) -> tuple[int, int]:
+    try:
+        ix, iy = (int(v) for v in text.split(","))
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(f"cell {text!r}: give IX,IY (east, north)") from err
+    return ix, iy
+
+
+def _lonlat(text: str) -> Any:
+    from geonav.geo import LonLat
+
+    try:
+        lat, lon, *alt = (float(v) for v in text.split(","))
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(f"home {text!r}: give LAT,LON[,ALT]") from err
+    return LonLat(lon, lat, alt[0] if alt else 0.0)
+
+
+def add_parser(subparsers: Any) -> None:
+    """Register ``fly``, ``emulator`` and ``mavlink emulate``."""
+    p = subparsers.add_parser("fly", help="fly a checkpoint on PX4/ArduPilot over MAVLink")
+    p.add_argument("checkpoint", help="policy checkpoint (.pt)")
+    p.add_argument("--scene", required=True, help="scene package folder")
+    p.add_argument("--connect", help="udpin:0.0.0.0:14540, tcp:127.0.0.1:5760, /dev/ttyACM0:921600")
+    p.add_argument("--backend", choices=("pymavlink", "mavsdk"), default="pymavlink")
+    p.add_argument("--camera", default="synthetic", help="synthetic, opencv:0 or rtsp://...")
+    p.add_argument("--start", type=_cell, help="start cell IX,IY (default: under take-off)")
+    p.add_argument("--target", type=_cell, required=True, help="target cell IX,IY")
+    p.add_argument("--end", choices=("land", "rtl"), default="land")
+    p.add_argument("--dry-run", action="store_true", help="fly against an in-process emulator")
+    p.add_argument("--autopilot", choices=("px4", "ardupilot"), default="px4",
+                   help="emulator flavour for --dry-run")
+    p.add_argument("--max-steps", type=int, default=70)
+    p.add_argument("--max-distance", type=float, default=float("inf"),
+                   help="geofence radius around home, metres")
+    p.add_argument("--fence-margin", type=float, default=0.0, help="shrink scene bounds, metres")
+    p.add_argument("--set-origin", action="store_true",
+                   help="send SET_GPS_GLOBAL_ORIGIN at the scene origin (GPS-less vehicles)")
+    p.add_argument("--out", default="flight", help="folder for flight.jsonl and track.png")
+    p.set_defaults(handler=run_fly)
+
+    for name in ("emulator",):
+        e = subparsers.add_parser(name, help="run the MAVLink vehicle emulator (tests, dry runs)")
+        _emulator_args(e)
+    m = subparsers.add_parser("mavlink", help="MAVLink tools")
+    msub = m.add_subparsers(dest="mavlink_command", metavar="TOOL")
+    _emulator_args(msub.add_parser("emulate", help="run the MAVLink vehicle emulator"))
+
+
+def _emulator_args(e: argparse.ArgumentParser) -> None:
+    e.add_argument("--autopilot", choices=("px4", "ardupilot"), default="px4")
+    e.add_argument("--home", type=_lonlat, help="LAT,LON[,ALT] of home (default Rotterdam)")
+    e.add_argument("--listen", default="udp:127.0.0.1:14580",
+                   help="udp:HOST:PORT (reply to senders), tcp:HOST:PORT, or udpout:HOST:PORT")
+    e.add_argument("--time-scale", type=float, default=1.0, help="emulated seconds per second")
+    e.add_argument("--seconds", type=float, default=0.0, help="stop after this long (0: Ctrl-C)")
+    e.set_defaults(handler=run_emulator)
+
+
+def run_fly(args: argparse.Namespace) -> int:
+    """Handler of ``geonav fly``."""
+    from geonav.mavlink_bridge.flight import fly
+
+    if not args.dry_run and not args.connect:
+        raise ConfigError("give --connect URL, or --dry-run to fly against the emulator")
+    try:
+        from geonav.cli import progress_bar
+
+        progress = progress_bar("fly")
+    except ImportError:
+        progress = None
+    result = fly(
+        args.checkpoint, args.scene, target_cell=args.target, connect=args.connect,
+        backend=args.backend, camera=args.camera, start_cell=args.start, end=args.end,
+        dry_run=args.dry_run, autopilot=args.autopilot, out_dir=args.out, progress=progress,
+        max_steps=args.max_steps, max_distance_m=args.max_distance,
+        fence_margin_m=args.fence_margin, set_origin=args.set_origin,
+    )
+    status = "reached the target" if result.success else "did not reach the target"
+    print(f"{status}: {result.reason}; {result.steps} steps; end {result.end_action}, "
+          f"disarmed {result.disarmed}; record {result.record_path}; track {result.png_path}")
+    return 0 if result.success else 1
+
+
+def run_emulator(args: argparse.Namespace) -> int:
+    """Handler of ``geonav emulator`` / ``geonav mavlink emulate``."""
+    from geonav.mavlink_bridge.emulator import EmulatorConfig, run_standalone
+
+    kw: dict[str, Any] = {"autopilot": args.autopilot, "listen": args.listen,
+                          "time_scale": args.time_scale}
+    if args.home is not None:
+        kw["home"] = args.home
+    cfg = EmulatorConfig(**kw)
+    stop = threading.Event()
+    if args.seconds > 0:
+        threading.Timer(args.seconds, stop.set).start()
+
+    def ready(emu: Any) -> None:
+        print(f"{cfg.autopilot} emulator on {cfg.listen}: connect with {emu.connect_url} "
+              f"(MAVSDK {emu.mavsdk_url}); Ctrl-C to stop", flush=True)
+
+    try:
+        run_standalone(cfg, stop, ready)
+    except KeyboardInterrupt:
+        stop.set()
+    return 0

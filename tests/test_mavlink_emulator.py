@@ -1,0 +1,88 @@
+"""The emulator reproduces the autopilot behaviour the bridge relies on; CLI wiring."""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import pytest
+
+from geonav.errors import CheckpointError
+from geonav.mavlink_bridge import modes as M
+from geonav.mavlink_bridge.emulator import Emulator, EmulatorConfig
+from geonav.mavlink_bridge.vehicle import open_vehicle
+
+
+def _vehicle(emu: Emulator):
+    v = open_vehicle(emu.connect_url, "pymavlink")
+    v.connect(5.0)
+    return v
+
+
+def test_ardupilot_streams_nothing_until_asked_and_undoes_boot_mode() -> None:
+    cfg = EmulatorConfig(autopilot="ardupilot", time_scale=4, boot_s=2.0, origin_s=0.2,
+                         local_position_s=0.2, prearm_s=0.2)
+    with Emulator(cfg) as emu:
+        v = _vehicle(emu)
+        try:
+            assert v.state().system_status == M.MAV_STATE_BOOT
+            v.set_mode("guided", 2.0)  # ACCEPTED during boot ...
+            time.sleep(0.8)
+            assert v.state().position is None  # no default streams
+            t0 = time.monotonic()
+            while v.state().system_status != M.MAV_STATE_STANDBY and time.monotonic() - t0 < 3:
+                time.sleep(0.05)
+            time.sleep(0.4)
+            assert v.state().mode == "stabilize"  # ... and undone when boot finished
+            v.request_telemetry(10.0, 2.0)
+            time.sleep(0.5)
+            assert v.state().position is not None and v.state().origin is not None
+        finally:
+            v.close()
+
+
+def test_px4_refuses_offboard_without_a_setpoint_stream() -> None:
+    cfg = EmulatorConfig(autopilot="px4", time_scale=4, boot_s=0.1, origin_s=0.1,
+                         local_position_s=0.1, prearm_s=0.1)
+    with Emulator(cfg) as emu:
+        v = _vehicle(emu)
+        try:
+            time.sleep(0.3)
+            assert v.command(M.MAV_CMD_DO_SET_MODE, (1, 6, 0), 2.0) == M.MAV_RESULT_TEMPORARILY_REJECTED
+            from geonav.geo import LocalNED
+
+            for _ in range(10):
+                v.send_position_target(LocalNED(0, 0, -5), 0.0)
+                time.sleep(0.05)
+            assert v.command(M.MAV_CMD_DO_SET_MODE, (1, 6, 0), 2.0) == M.MAV_RESULT_ACCEPTED
+            time.sleep(0.6)  # > COM_OF_LOSS_T (1 s emulated) without setpoints
+            assert v.state().mode == "land"
+            assert "offboard loss" in emu.mode_history()[-1]
+        finally:
+            v.close()
+
+
+def test_fly_without_policy_package_is_a_clear_checkpoint_error(tmp_path) -> None:
+    from geonav.mavlink_bridge import flight
+
+    try:
+        import geonav.policy.inference  # noqa: F401
+    except ImportError:
+        with pytest.raises(CheckpointError, match="PolicyRunner"):
+            flight.load_policy(tmp_path / "missing.pt")
+    else:
+        with pytest.raises(Exception):  # noqa: B017 - a missing file must not load
+            flight.load_policy(tmp_path / "missing.pt")
+
+
+def test_cli_registers_fly_and_emulator() -> None:
+    from geonav.mavlink_bridge import cli
+
+    p = argparse.ArgumentParser()
+    cli.add_parser(p.add_subparsers())
+    a = p.parse_args(["fly", "c.pt", "--scene", "s", "--target", "3,4", "--start", "1,2",
+                      "--backend", "mavsdk", "--end", "rtl", "--dry-run"])
+    assert (a.target, a.start, a.backend, a.end, a.dry_run) == ((3, 4), (1, 2), "mavsdk", "rtl", True)
+    a = p.parse_args(["emulator", "--autopilot", "ardupilot", "--listen", "udp:127.0.0.1:0",
+                      "--seconds", "0.3"])
+    assert a.handler(a) == 0
