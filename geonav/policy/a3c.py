@@ -22,6 +22,7 @@ import json
 import logging
 import os
 import queue as queue_mod
+import sys
 import time
 import traceback
 from collections.abc import Callable, Sequence
@@ -208,7 +209,7 @@ class A3CWorker:
 
 def _worker_process(rank: int, shared_model: ActorCritic, optimizer: SharedAdam,
                     env_factory: EnvFactory, net_cfg: NetConfig, cfg: A3CConfig, seed: int,
-                    counter: Any, lock: Any, results: Any, stop: Any) -> None:
+                    counter: Any, lock: Any, results: Any, stop: Any, ready: Any) -> None:
     """Process target: claim episode numbers from the global counter until the budget is spent."""
     try:
         torch.set_num_threads(cfg.torch_threads)
@@ -218,6 +219,7 @@ def _worker_process(rank: int, shared_model: ActorCritic, optimizer: SharedAdam,
         local.load_state_dict(shared_model.state_dict())
         worker = A3CWorker(rank, local, optimizer, env, cfg, build_frozen_encoder(net_cfg),
                            seed, shared_model=shared_model)
+        ready.wait(timeout=300)  # start together, so every worker takes part from episode 1
         while not stop.is_set():
             with lock:
                 if counter.value >= cfg.episodes:
@@ -263,7 +265,9 @@ class A3CTrainer:
             None keeps everything in memory.
         resume: a checkpoint to continue from (episodes, weights, Adam state, RNG).
         callbacks: extra :class:`Callback` objects (progress bars, early stopping).
-        mp_context: 'spawn' (default; safe with torch) or 'fork' (faster start).
+        mp_context: process start method: 'fork' (default on Linux: workers start at once;
+            each sets one torch thread before any work), 'spawn' (default elsewhere; each
+            worker re-imports torch, several seconds) or 'forkserver'.
         keep_records: keep every episode record in ``TrainResult.records``.
     """
 
@@ -272,8 +276,11 @@ class A3CTrainer:
     def __init__(self, env_factory: EnvFactory, net_cfg: NetConfig | None = None,
                  cfg: A3CConfig = A3CConfig(), *, out_dir: str | os.PathLike[str] | None = None,
                  resume: str | os.PathLike[str] | None = None,
-                 callbacks: Sequence[Callback] = (), mp_context: str = "spawn",
+                 callbacks: Sequence[Callback] = (), mp_context: str | None = None,
                  keep_records: bool = True, tensorboard: bool = True) -> None:
+        if mp_context is None:
+            mp_context = "fork" if "fork" in torch.multiprocessing.get_all_start_methods() \
+                and sys.platform.startswith("linux") else "spawn"
         if mp_context not in ("spawn", "fork", "forkserver"):
             raise ConfigError(f"mp_context must be spawn, fork or forkserver, not {mp_context!r}")
         self.env_factory = env_factory
@@ -431,13 +438,15 @@ class A3CTrainer:
         lock = ctx.Lock()
         results = ctx.Queue()
         stop = ctx.Event()
+        ready = ctx.Barrier(self.cfg.workers)
         procs = []
         for rank in range(self.cfg.workers):
             # Distinct streams per worker, and new ones after a resume.
             seed = self.cfg.seed + 1000 * rank + 7919 * self.start_episode
             p = ctx.Process(target=_worker_process, name=f"a3c-worker-{rank}",
                             args=(rank, self.model, self.optimizer, self.env_factory,
-                                  self.net_cfg, self.cfg, seed, counter, lock, results, stop),
+                                  self.net_cfg, self.cfg, seed, counter, lock, results, stop,
+                                  ready),
                             daemon=True)
             p.start()
             procs.append(p)
@@ -464,6 +473,7 @@ class A3CTrainer:
                     break
         finally:
             stop.set()
+            ready.abort()  # frees workers still waiting at the start barrier
             for p in procs:
                 p.join(timeout=10)
                 if p.is_alive():
