@@ -30,11 +30,11 @@ from torch import nn  # noqa: E402
 
 from geonav.camera import Camera, WarpRenderer  # noqa: E402
 from geonav.geo import LonLat, ScenePoint  # noqa: E402
+from geonav.mavlink_bridge.camera_source import SyntheticFrames  # noqa: E402
 from geonav.mavlink_bridge.conversion import TargetPlanner  # noqa: E402
 from geonav.mavlink_bridge.emulator import Emulator, EmulatorConfig  # noqa: E402
 from geonav.mavlink_bridge.pump import SetpointPump  # noqa: E402
 from geonav.mavlink_bridge.safety import Geofence  # noqa: E402
-from geonav.mavlink_bridge.camera_source import SyntheticFrames  # noqa: E402
 from geonav.mavlink_bridge.vehicle import open_vehicle  # noqa: E402
 from geonav.testing import textured_scene  # noqa: E402
 
@@ -45,8 +45,15 @@ class TinyActorCritic(nn.Module):
     def __init__(self) -> None:
         super().__init__()
         self.enc = nn.Sequential(
-            nn.Conv2d(6, 32, 8, 4), nn.ReLU(), nn.Conv2d(32, 64, 4, 2), nn.ReLU(),
-            nn.Conv2d(64, 64, 3, 1), nn.ReLU(), nn.Flatten(), nn.Linear(64 * 7 * 7, 256), nn.ReLU(),
+            nn.Conv2d(6, 32, 8, 4),
+            nn.ReLU(),
+            nn.Conv2d(32, 64, 4, 2),
+            nn.ReLU(),
+            nn.Conv2d(64, 64, 3, 1),
+            nn.ReLU(),
+            nn.Flatten(),
+            nn.Linear(64 * 7 * 7, 256),
+            nn.ReLU(),
         )
         self.lstm = nn.LSTMCell(256, 256)
         self.pi = nn.Linear(256, 4)
@@ -58,7 +65,10 @@ class TinyActorCritic(nn.Module):
 
     @torch.inference_mode()
     def act(self, image: np.ndarray, target: np.ndarray) -> int:
-        x = torch.from_numpy(np.concatenate([image, target], axis=2)).permute(2, 0, 1)[None].float() / 255
+        x = (
+            torch.from_numpy(np.concatenate([image, target], axis=2)).permute(2, 0, 1)[None].float()
+            / 255
+        )
         h, c = self.lstm(self.enc(x), self.hx)
         self.hx = (h, c)
         return int(torch.argmax(self.pi(h), dim=1))
@@ -92,20 +102,38 @@ def main() -> None:
     camera = Camera(84, 90.0)
     renderer = WarpRenderer(scene, camera)
     ekf_origin = scene.frame.to_lonlat(ScenePoint(37.0, -21.0), 0.0)
-    emu = Emulator(EmulatorConfig(autopilot="px4", home=ekf_origin, boot_s=0.0, origin_s=0.0,
-                                  local_position_s=0.0, prearm_s=0.0)).start()
+    emu = Emulator(
+        EmulatorConfig(
+            autopilot="px4",
+            home=ekf_origin,
+            boot_s=0.0,
+            origin_s=0.0,
+            local_position_s=0.0,
+            prearm_s=0.0,
+        )
+    ).start()
     vehicle = open_vehicle(emu.connect_url, "pymavlink")
     vehicle.connect(10.0)
     vehicle.request_telemetry(10.0, 3.0)
     t0 = time.monotonic()
-    while (vehicle.state().position is None or vehicle.state().origin is None) and time.monotonic() - t0 < 10:
+    while (
+        vehicle.state().position is None or vehicle.state().origin is None
+    ) and time.monotonic() - t0 < 10:
         time.sleep(0.05)
     s = vehicle.state()
-    planner = TargetPlanner(scene.frame, s.origin or LonLat(ekf_origin.lon_deg, ekf_origin.lat_deg),
-                            s.position.down_m if s.position else 0.0, 45.0)
+    planner = TargetPlanner(
+        scene.frame,
+        s.origin or LonLat(ekf_origin.lon_deg, ekf_origin.lat_deg),
+        s.position.down_m if s.position else 0.0,
+        45.0,
+    )
     fence = Geofence.from_bounds(scene.bounds_m, 10.0)
-    pump = SetpointPump(vehicle, rate_hz=15.0, deadline_s=5.0,
-                        fence_check=lambda ned: fence.check(planner.to_scene(ned)[0]))
+    pump = SetpointPump(
+        vehicle,
+        rate_hz=15.0,
+        deadline_s=5.0,
+        fence_check=lambda ned: fence.check(planner.to_scene(ned)[0]),
+    )
     # Render at the scene point 45 m above, as the reported position would be in flight.
     frames = SyntheticFrames(renderer, lambda ned: (planner.to_scene(ned)[0], 45.0))
     target_img = renderer.render(30.0, 30.0, 45.0)
@@ -132,9 +160,14 @@ def main() -> None:
     emu.stop()
     a = np.asarray(lat_ms)
     print(f"policy: {policy_name}; torch threads {torch.get_num_threads()}; {pinned}")
-    print(f"frame -> setpoint latency over {len(a)} steps (84 px synthetic camera, pymavlink, UDP):")
-    print(f"  p50 {np.percentile(a, 50):.2f} ms   p99 {np.percentile(a, 99):.2f} ms   "
-          f"max {a.max():.2f} ms   (target p99 < 20 ms: {'met' if np.percentile(a, 99) < 20 else 'NOT met'})")
+    print(
+        f"frame -> setpoint latency over {len(a)} steps (84 px synthetic camera, pymavlink, UDP):"
+    )
+    print(
+        f"  p50 {np.percentile(a, 50):.2f} ms   p99 {np.percentile(a, 99):.2f} ms   "
+        f"max {a.max():.2f} ms   "
+        f"(target p99 < 20 ms: {'met' if np.percentile(a, 99) < 20 else 'NOT met'})"
+    )
 
 
 if __name__ == "__main__":

@@ -77,12 +77,54 @@ def test_bad_action_is_refused() -> None:
 @pytest.mark.parametrize(
     "url,kind,host,port,pym,msdk",
     [
-        ("udpin:0.0.0.0:14540", "udpin", "0.0.0.0", 14540, "udpin:0.0.0.0:14540", "udpin://0.0.0.0:14540"),
-        ("udpin://0.0.0.0:14540", "udpin", "0.0.0.0", 14540, "udpin:0.0.0.0:14540", "udpin://0.0.0.0:14540"),
-        ("tcp:127.0.0.1:5760", "tcp", "127.0.0.1", 5760, "tcp:127.0.0.1:5760", "tcpout://127.0.0.1:5760"),
-        ("udpout:10.0.0.2:14550", "udpout", "10.0.0.2", 14550, "udpout:10.0.0.2:14550", "udpout://10.0.0.2:14550"),
-        ("/dev/ttyACM0:921600", "serial", "/dev/ttyACM0", 921600, "/dev/ttyACM0", "serial:///dev/ttyACM0:921600"),
-        ("serial:///dev/ttyUSB0:57600", "serial", "/dev/ttyUSB0", 57600, "/dev/ttyUSB0", "serial:///dev/ttyUSB0:57600"),
+        (
+            "udpin:0.0.0.0:14540",
+            "udpin",
+            "0.0.0.0",
+            14540,
+            "udpin:0.0.0.0:14540",
+            "udpin://0.0.0.0:14540",
+        ),
+        (
+            "udpin://0.0.0.0:14540",
+            "udpin",
+            "0.0.0.0",
+            14540,
+            "udpin:0.0.0.0:14540",
+            "udpin://0.0.0.0:14540",
+        ),
+        (
+            "tcp:127.0.0.1:5760",
+            "tcp",
+            "127.0.0.1",
+            5760,
+            "tcp:127.0.0.1:5760",
+            "tcpout://127.0.0.1:5760",
+        ),
+        (
+            "udpout:10.0.0.2:14550",
+            "udpout",
+            "10.0.0.2",
+            14550,
+            "udpout:10.0.0.2:14550",
+            "udpout://10.0.0.2:14550",
+        ),
+        (
+            "/dev/ttyACM0:921600",
+            "serial",
+            "/dev/ttyACM0",
+            921600,
+            "/dev/ttyACM0",
+            "serial:///dev/ttyACM0:921600",
+        ),
+        (
+            "serial:///dev/ttyUSB0:57600",
+            "serial",
+            "/dev/ttyUSB0",
+            57600,
+            "/dev/ttyUSB0",
+            "serial:///dev/ttyUSB0:57600",
+        ),
     ],
 )
 def test_connection_strings(url: str, kind: str, host: str, port: int, pym: str, msdk: str) -> None:
@@ -109,7 +151,9 @@ def test_mode_numbers() -> None:
 
 
 def test_geofence_box_and_radius() -> None:
-    fence = Geofence.from_bounds((-50, -50, 50, 50), 5.0, home=ScenePoint(0, 0), max_distance_m=30.0)
+    fence = Geofence.from_bounds(
+        (-50, -50, 50, 50), 5.0, home=ScenePoint(0, 0), max_distance_m=30.0
+    )
     assert fence.contains(ScenePoint(20, 20))
     assert "outside the geofence box" in fence.violation(ScenePoint(46, 0))
     assert "from home" in fence.violation(ScenePoint(25, 25))
@@ -135,7 +179,9 @@ class _FakeVehicle:
         self.landed.set()
 
     def state(self) -> VehicleState:
-        return VehicleState(M.PX4, 4, self.mode, True, 0.1, LocalNED(0, 0, -10), (0, 0, 0), 0.1, None, None)
+        return VehicleState(
+            M.PX4, 4, self.mode, True, 0.1, LocalNED(0, 0, -10), (0, 0, 0), 0.1, None, None
+        )
 
 
 def _fence_check(ned: LocalNED) -> None:

@@ -20,8 +20,14 @@ def _vehicle(emu: Emulator):
 
 
 def test_ardupilot_streams_nothing_until_asked_and_undoes_boot_mode() -> None:
-    cfg = EmulatorConfig(autopilot="ardupilot", time_scale=4, boot_s=2.0, origin_s=0.2,
-                         local_position_s=0.2, prearm_s=0.2)
+    cfg = EmulatorConfig(
+        autopilot="ardupilot",
+        time_scale=4,
+        boot_s=2.0,
+        origin_s=0.2,
+        local_position_s=0.2,
+        prearm_s=0.2,
+    )
     with Emulator(cfg) as emu:
         v = _vehicle(emu)
         try:
@@ -42,13 +48,17 @@ def test_ardupilot_streams_nothing_until_asked_and_undoes_boot_mode() -> None:
 
 
 def test_px4_refuses_offboard_without_a_setpoint_stream() -> None:
-    cfg = EmulatorConfig(autopilot="px4", time_scale=4, boot_s=0.1, origin_s=0.1,
-                         local_position_s=0.1, prearm_s=0.1)
+    cfg = EmulatorConfig(
+        autopilot="px4", time_scale=4, boot_s=0.1, origin_s=0.1, local_position_s=0.1, prearm_s=0.1
+    )
     with Emulator(cfg) as emu:
         v = _vehicle(emu)
         try:
             time.sleep(0.3)
-            assert v.command(M.MAV_CMD_DO_SET_MODE, (1, 6, 0), 2.0) == M.MAV_RESULT_TEMPORARILY_REJECTED
+            assert (
+                v.command(M.MAV_CMD_DO_SET_MODE, (1, 6, 0), 2.0)
+                == M.MAV_RESULT_TEMPORARILY_REJECTED
+            )
             from geonav.geo import LocalNED
 
             for _ in range(10):
@@ -80,9 +90,31 @@ def test_cli_registers_fly_and_emulator() -> None:
 
     p = argparse.ArgumentParser()
     cli.add_parser(p.add_subparsers())
-    a = p.parse_args(["fly", "c.pt", "--scene", "s", "--target", "3,4", "--start", "1,2",
-                      "--backend", "mavsdk", "--end", "rtl", "--dry-run"])
-    assert (a.target, a.start, a.backend, a.end, a.dry_run) == ((3, 4), (1, 2), "mavsdk", "rtl", True)
-    a = p.parse_args(["emulator", "--autopilot", "ardupilot", "--listen", "udp:127.0.0.1:0",
-                      "--seconds", "0.3"])
+    a = p.parse_args(
+        [
+            "fly",
+            "c.pt",
+            "--scene",
+            "s",
+            "--target",
+            "3,4",
+            "--start",
+            "1,2",
+            "--backend",
+            "mavsdk",
+            "--end",
+            "rtl",
+            "--dry-run",
+        ]
+    )
+    assert (a.target, a.start, a.backend, a.end, a.dry_run) == (
+        (3, 4),
+        (1, 2),
+        "mavsdk",
+        "rtl",
+        True,
+    )
+    a = p.parse_args(
+        ["emulator", "--autopilot", "ardupilot", "--listen", "udp:127.0.0.1:0", "--seconds", "0.3"]
+    )
     assert a.handler(a) == 0

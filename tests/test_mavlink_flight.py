@@ -21,8 +21,17 @@ from geonav.testing import textured_scene
 
 META = {"obs_size_px": 32, "alt_m": 10.0, "step_m": 5.0, "fov_deg": 90.0}
 START, TARGET = (5, 5), (7, 6)
-FAST = Timeouts(connect_s=10, ready_s=10, position_s=10, command_s=1.5, mode_s=4, arm_s=8,
-                arm_retry_s=0.3, takeoff_s=15, landing_s=20)
+FAST = Timeouts(
+    connect_s=10,
+    ready_s=10,
+    position_s=10,
+    command_s=1.5,
+    mode_s=4,
+    arm_s=8,
+    arm_retry_s=0.3,
+    takeoff_s=15,
+    landing_s=20,
+)
 
 
 @pytest.fixture(scope="module")
@@ -39,8 +48,16 @@ def _emulator(scene: Any, autopilot: str, **kw: Any) -> Emulator:
     # Emulated time runs 6x faster; COM_OF_LOSS_T is raised to 3 s emulated (0.5 s wall)
     # so that scheduling jitter on a loaded 2-core CI box is not an offboard loss.
     kw.setdefault("offboard_loss_s", 3.0)
-    cfg = EmulatorConfig(autopilot=autopilot, home=home, time_scale=6.0, boot_s=1.0, prearm_s=3.0,
-                         origin_s=0.6, local_position_s=1.2, **kw)
+    cfg = EmulatorConfig(
+        autopilot=autopilot,
+        home=home,
+        time_scale=6.0,
+        boot_s=1.0,
+        prearm_s=3.0,
+        origin_s=0.6,
+        local_position_s=1.2,
+        **kw,
+    )
     return Emulator(cfg).start()
 
 
@@ -58,7 +75,9 @@ def _scene_xy(scene: Any, emu: Emulator, north_m: float, east_m: float) -> tuple
 
 @pytest.mark.parametrize("backend", ["pymavlink", "mavsdk"])
 @pytest.mark.parametrize("autopilot", ["px4", "ardupilot"])
-def test_full_flight_reaches_target_and_lands(scene: Any, tmp_path: Path, autopilot: str, backend: str) -> None:
+def test_full_flight_reaches_target_and_lands(
+    scene: Any, tmp_path: Path, autopilot: str, backend: str
+) -> None:
     actions = path_actions(START, TARGET)
     with _emulator(scene, autopilot) as emu:
         result = _fly(scene, emu, ScriptedPolicy(actions, META), backend, tmp_path)
@@ -129,8 +148,9 @@ def test_target_outside_fence_is_never_sent(scene: Any, tmp_path: Path, caplog: 
 
 def _fly_target(scene: Any, emu: Emulator, out: Path, max_dist: float):
     vehicle = open_vehicle(emu.connect_url, "pymavlink")
-    config = FlightConfig(target_cell=(11, 5), start_cell=START, timeouts=FAST,
-                          max_distance_m=max_dist)
+    config = FlightConfig(
+        target_cell=(11, 5), start_cell=START, timeouts=FAST, max_distance_m=max_dist
+    )
     return run_flight(vehicle, scene, _Eastward(), config, out)
 
 
@@ -154,8 +174,15 @@ class _Hook(ScriptedPolicy):
 def test_link_loss_ends_in_landing(scene: Any, tmp_path: Path, caplog: Any) -> None:
     with _emulator(scene, "px4") as emu, caplog.at_level(logging.ERROR):
         policy = _Hook(path_actions(START, TARGET), 1, lambda: emu.drop_link(2.5))
-        result = _fly(scene, emu, policy, "pymavlink", tmp_path, heartbeat_timeout_s=1.0,
-                      position_timeout_s=5.0)
+        result = _fly(
+            scene,
+            emu,
+            policy,
+            "pymavlink",
+            tmp_path,
+            heartbeat_timeout_s=1.0,
+            position_timeout_s=5.0,
+        )
         assert not result.success
         assert "heartbeat lost" in result.reason
         # PX4 left OFFBOARD after COM_OF_LOSS_T and landed; the bridge's LAND confirmed it.
@@ -166,7 +193,9 @@ def test_link_loss_ends_in_landing(scene: Any, tmp_path: Path, caplog: Any) -> N
 
 
 @pytest.mark.parametrize("backend", ["pymavlink", "mavsdk"])
-def test_arming_refusal_is_reported_and_nothing_flies(scene: Any, tmp_path: Path, backend: str) -> None:
+def test_arming_refusal_is_reported_and_nothing_flies(
+    scene: Any, tmp_path: Path, backend: str
+) -> None:
     with _emulator(scene, "ardupilot") as emu:
         emu.refuse_arming("Battery below minimum")
         timeouts = Timeouts(**{**FAST.__dict__, "arm_s": 2.0})
@@ -185,8 +214,9 @@ def test_arming_refusal_is_reported_and_nothing_flies(scene: Any, tmp_path: Path
 def test_prearm_failures_are_retried_until_ready(scene: Any, tmp_path: Path) -> None:
     with _emulator(scene, "ardupilot") as emu:
         emu.cfg.prearm_s = 12.0  # ~2 s of wall time of PreArm failures
-        result = _fly(scene, emu, ScriptedPolicy([1, 1], META), "pymavlink", tmp_path,
-                      target_cell=(7, 5))
+        result = _fly(
+            scene, emu, ScriptedPolicy([1, 1], META), "pymavlink", tmp_path, target_cell=(7, 5)
+        )
         assert result.success, result.reason
         assert result.steps == 2
         refused = [c for c in emu.commands_named(M.MAV_CMD_COMPONENT_ARM_DISARM) if c.result == 4]
@@ -215,16 +245,28 @@ def test_operator_takeover_ends_autonomy_without_fighting(scene: Any, tmp_path: 
         assert "operator takeover" in result.reason
         assert result.end_action == "none"
         takeover_t = next(t for t, e in emu.events if "(operator)" in e)
-        later = [c for c in emu.commands if c.t_s > takeover_t and c.command in (
-            M.MAV_CMD_DO_SET_MODE, M.MAV_CMD_NAV_LAND, M.MAV_CMD_NAV_RETURN_TO_LAUNCH)]
+        later = [
+            c
+            for c in emu.commands
+            if c.t_s > takeover_t
+            and c.command
+            in (M.MAV_CMD_DO_SET_MODE, M.MAV_CMD_NAV_LAND, M.MAV_CMD_NAV_RETURN_TO_LAUNCH)
+        ]
         assert later == []
         assert emu.mode == "hold" and emu.armed  # still the operator's
 
 
 def test_rtl_end_action(scene: Any, tmp_path: Path) -> None:
     with _emulator(scene, "ardupilot", rtl_alt_m=12.0) as emu:
-        result = _fly(scene, emu, ScriptedPolicy([0], META), "pymavlink", tmp_path, end="rtl",
-                      target_cell=(5, 6))
+        result = _fly(
+            scene,
+            emu,
+            ScriptedPolicy([0], META),
+            "pymavlink",
+            tmp_path,
+            end="rtl",
+            target_cell=(5, 6),
+        )
         assert result.success and result.end_action == "rtl" and result.disarmed
         assert "mode rtl (DO_SET_MODE)" in emu.mode_history()
         assert math.hypot(emu.pos[0], emu.pos[1]) < 1.0  # back home

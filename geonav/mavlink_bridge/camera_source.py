@@ -84,12 +84,12 @@ def square_resize(rgb: np.ndarray, size_px: int) -> np.ndarray:
     h, w = rgb.shape[:2]
     side = min(h, w)
     y0, x0 = (h - side) // 2, (w - side) // 2
-    crop = rgb[y0:y0 + side, x0:x0 + side]
+    crop = rgb[y0 : y0 + side, x0 : x0 + side]
     return cv2.resize(crop, (size_px, size_px), interpolation=cv2.INTER_AREA)
 
 
 def parse_camera(spec: str) -> tuple[str, int | str | None]:
-    """``synthetic`` -> ("synthetic", None); ``opencv:0`` -> ("opencv", 0); URLs -> ("opencv", url)."""
+    """Camera spec -> (kind, device): ``synthetic``, ``opencv:0`` -> ("opencv", 0), URLs."""
     if spec == "synthetic":
         return "synthetic", None
     if spec.startswith("opencv:"):

@@ -43,14 +43,25 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument("--target", type=_cell, required=True, help="target cell IX,IY")
     p.add_argument("--end", choices=("land", "rtl"), default="land")
     p.add_argument("--dry-run", action="store_true", help="fly against an in-process emulator")
-    p.add_argument("--autopilot", choices=("px4", "ardupilot"), default="px4",
-                   help="emulator flavour for --dry-run")
+    p.add_argument(
+        "--autopilot",
+        choices=("px4", "ardupilot"),
+        default="px4",
+        help="emulator flavour for --dry-run",
+    )
     p.add_argument("--max-steps", type=int, default=70)
-    p.add_argument("--max-distance", type=float, default=float("inf"),
-                   help="geofence radius around home, metres")
+    p.add_argument(
+        "--max-distance",
+        type=float,
+        default=float("inf"),
+        help="geofence radius around home, metres",
+    )
     p.add_argument("--fence-margin", type=float, default=0.0, help="shrink scene bounds, metres")
-    p.add_argument("--set-origin", action="store_true",
-                   help="send SET_GPS_GLOBAL_ORIGIN at the scene origin (GPS-less vehicles)")
+    p.add_argument(
+        "--set-origin",
+        action="store_true",
+        help="send SET_GPS_GLOBAL_ORIGIN at the scene origin (GPS-less vehicles)",
+    )
     p.add_argument("--out", default="flight", help="folder for flight.jsonl and track.png")
     p.set_defaults(handler=run_fly)
 
@@ -65,8 +76,11 @@ def add_parser(subparsers: Any) -> None:
 def _emulator_args(e: argparse.ArgumentParser) -> None:
     e.add_argument("--autopilot", choices=("px4", "ardupilot"), default="px4")
     e.add_argument("--home", type=_lonlat, help="LAT,LON[,ALT] of home (default Rotterdam)")
-    e.add_argument("--listen", default="udp:127.0.0.1:14580",
-                   help="udp:HOST:PORT (reply to senders), tcp:HOST:PORT, or udpout:HOST:PORT")
+    e.add_argument(
+        "--listen",
+        default="udp:127.0.0.1:14580",
+        help="udp:HOST:PORT (reply to senders), tcp:HOST:PORT, or udpout:HOST:PORT",
+    )
     e.add_argument("--time-scale", type=float, default=1.0, help="emulated seconds per second")
     e.add_argument("--seconds", type=float, default=0.0, help="stop after this long (0: Ctrl-C)")
     e.set_defaults(handler=run_emulator)
@@ -85,15 +99,28 @@ def run_fly(args: argparse.Namespace) -> int:
     except ImportError:
         progress = None
     result = fly(
-        args.checkpoint, args.scene, target_cell=args.target, connect=args.connect,
-        backend=args.backend, camera=args.camera, start_cell=args.start, end=args.end,
-        dry_run=args.dry_run, autopilot=args.autopilot, out_dir=args.out, progress=progress,
-        max_steps=args.max_steps, max_distance_m=args.max_distance,
-        fence_margin_m=args.fence_margin, set_origin=args.set_origin,
+        args.checkpoint,
+        args.scene,
+        target_cell=args.target,
+        connect=args.connect,
+        backend=args.backend,
+        camera=args.camera,
+        start_cell=args.start,
+        end=args.end,
+        dry_run=args.dry_run,
+        autopilot=args.autopilot,
+        out_dir=args.out,
+        progress=progress,
+        max_steps=args.max_steps,
+        max_distance_m=args.max_distance,
+        fence_margin_m=args.fence_margin,
+        set_origin=args.set_origin,
     )
     status = "reached the target" if result.success else "did not reach the target"
-    print(f"{status}: {result.reason}; {result.steps} steps; end {result.end_action}, "
-          f"disarmed {result.disarmed}; record {result.record_path}; track {result.png_path}")
+    print(
+        f"{status}: {result.reason}; {result.steps} steps; end {result.end_action}, "
+        f"disarmed {result.disarmed}; record {result.record_path}; track {result.png_path}"
+    )
     return 0 if result.success else 1
 
 
@@ -101,8 +128,11 @@ def run_emulator(args: argparse.Namespace) -> int:
     """Handler of ``geonav emulator`` / ``geonav mavlink emulate``."""
     from geonav.mavlink_bridge.emulator import EmulatorConfig, run_standalone
 
-    kw: dict[str, Any] = {"autopilot": args.autopilot, "listen": args.listen,
-                          "time_scale": args.time_scale}
+    kw: dict[str, Any] = {
+        "autopilot": args.autopilot,
+        "listen": args.listen,
+        "time_scale": args.time_scale,
+    }
     if args.home is not None:
         kw["home"] = args.home
     cfg = EmulatorConfig(**kw)
@@ -111,8 +141,11 @@ def run_emulator(args: argparse.Namespace) -> int:
         threading.Timer(args.seconds, stop.set).start()
 
     def ready(emu: Any) -> None:
-        print(f"{cfg.autopilot} emulator on {cfg.listen}: connect with {emu.connect_url} "
-              f"(MAVSDK {emu.mavsdk_url}); Ctrl-C to stop", flush=True)
+        print(
+            f"{cfg.autopilot} emulator on {cfg.listen}: connect with {emu.connect_url} "
+            f"(MAVSDK {emu.mavsdk_url}); Ctrl-C to stop",
+            flush=True,
+        )
 
     try:
         run_standalone(cfg, stop, ready)

@@ -433,9 +433,7 @@ class Emulator:
 
     def _position_valid(self) -> bool:
         return (
-            self.origin is not None
-            and not self._gps_lost
-            and self.t_s >= self.cfg.local_position_s
+            self.origin is not None and not self._gps_lost and self.t_s >= self.cfg.local_position_s
         )
 
     def _set_mode(self, name: str, why: str = "") -> None:
@@ -552,7 +550,10 @@ class Emulator:
             self._maybe_auto_disarm_landed()
 
     def _maybe_auto_disarm_landed(self) -> None:
-        if self._touchdown_at is not None and self.t_s - self._touchdown_at > self.cfg.land_disarm_s:
+        if (
+            self._touchdown_at is not None
+            and self.t_s - self._touchdown_at > self.cfg.land_disarm_s
+        ):
             self._disarm("landed")
 
     def _home_ned(self) -> np.ndarray:
@@ -591,7 +592,9 @@ class Emulator:
         return int(self.t_s * 1000) & 0xFFFFFFFF
 
     def _heartbeat(self) -> Any:
-        base = M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (M.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0)
+        base = M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (
+            M.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0
+        )
         if not self.booted:
             status = M.MAV_STATE_BOOT
         elif self.armed:
@@ -616,9 +619,15 @@ class Emulator:
                 return None
             q = self.lonlat_of(self.pos[0], self.pos[1], self.pos[2])
             return mav.global_position_int_encode(
-                self._time_boot_ms(), int(q.lat_deg * 1e7), int(q.lon_deg * 1e7),
-                int(q.alt_m * 1000), int(-self.pos[2] * 1000),
-                int(self.vel[0] * 100), int(self.vel[1] * 100), int(self.vel[2] * 100), 0,
+                self._time_boot_ms(),
+                int(q.lat_deg * 1e7),
+                int(q.lon_deg * 1e7),
+                int(q.alt_m * 1000),
+                int(-self.pos[2] * 1000),
+                int(self.vel[0] * 100),
+                int(self.vel[1] * 100),
+                int(self.vel[2] * 100),
+                0,
             )
         if name == "HOME_POSITION":
             if self.origin is None:
@@ -626,8 +635,16 @@ class Emulator:
             h = self._home_ned()
             q = self.home
             return mav.home_position_encode(
-                int(q.lat_deg * 1e7), int(q.lon_deg * 1e7), int(q.alt_m * 1000),
-                h[0], h[1], h[2], [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0,
+                int(q.lat_deg * 1e7),
+                int(q.lon_deg * 1e7),
+                int(q.alt_m * 1000),
+                h[0],
+                h[1],
+                h[2],
+                [1.0, 0.0, 0.0, 0.0],
+                0.0,
+                0.0,
+                0.0,
             )
         if name == "GPS_GLOBAL_ORIGIN":
             if self.origin is None:
@@ -638,7 +655,9 @@ class Emulator:
             )
         if name == "SYS_STATUS":
             sensors = 0x3F | (0x20 if self._position_valid() else 0)
-            return mav.sys_status_encode(sensors, sensors, sensors, 100, 16000, 500, 90, 0, 0, 0, 0, 0, 0)
+            return mav.sys_status_encode(
+                sensors, sensors, sensors, 100, 16000, 500, 90, 0, 0, 0, 0, 0, 0
+            )
         if name == "EXTENDED_SYS_STATE":
             if self.landed:
                 state = M.MAV_LANDED_STATE_ON_GROUND
@@ -653,16 +672,36 @@ class Emulator:
             q = self.home if self.origin is None else self.lonlat_of(*self.pos)
             fix = 0 if self._gps_lost or self.t_s < self.cfg.origin_s else 3
             return mav.gps_raw_int_encode(
-                int(self.t_s * 1e6), fix, int(q.lat_deg * 1e7), int(q.lon_deg * 1e7),
-                int(q.alt_m * 1000), 80, 120, 0, 0, 12 if fix else 0,
+                int(self.t_s * 1e6),
+                fix,
+                int(q.lat_deg * 1e7),
+                int(q.lon_deg * 1e7),
+                int(q.alt_m * 1000),
+                80,
+                120,
+                0,
+                0,
+                12 if fix else 0,
             )
         if name == "POSITION_TARGET_LOCAL_NED":
             if self.target is None:
                 return None
             t = self.target
             return mav.position_target_local_ned_encode(
-                self._time_boot_ms(), M.MAV_FRAME_LOCAL_NED, M.TYPE_MASK_POSITION_YAW,
-                t[0], t[1], t[2], 0, 0, 0, 0, 0, 0, 0, 0,
+                self._time_boot_ms(),
+                M.MAV_FRAME_LOCAL_NED,
+                M.TYPE_MASK_POSITION_YAW,
+                t[0],
+                t[1],
+                t[2],
+                0,
+                0,
+                0,
+                0,
+                0,
+                0,
+                0,
+                0,
             )
         if name == "AUTOPILOT_VERSION":
             caps = (
@@ -674,7 +713,16 @@ class Emulator:
             )
             version = (1 << 24) | (15 << 16) if self.flavour == M.PX4 else (4 << 24) | (7 << 16)
             return mav.autopilot_version_encode(
-                caps, version | 0xFF, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0,
+                caps,
+                version | 0xFF,
+                0,
+                0,
+                0,
+                [0] * 8,
+                [0] * 8,
+                [0] * 8,
+                0,
+                0,
                 0x47454F4E4156 + self.cfg.system_id,
             )
         if name == "HEARTBEAT":
@@ -714,16 +762,32 @@ class Emulator:
             if msg.target_component not in (0, 1):
                 return
             if kind == "COMMAND_LONG":
-                params = (msg.param1, msg.param2, msg.param3, msg.param4,
-                          msg.param5, msg.param6, msg.param7)
+                params = (
+                    msg.param1,
+                    msg.param2,
+                    msg.param3,
+                    msg.param4,
+                    msg.param5,
+                    msg.param6,
+                    msg.param7,
+                )
             else:
-                params = (msg.param1, msg.param2, msg.param3, msg.param4,
-                          float(msg.x), float(msg.y), msg.z)
+                params = (
+                    msg.param1,
+                    msg.param2,
+                    msg.param3,
+                    msg.param4,
+                    float(msg.x),
+                    float(msg.y),
+                    msg.z,
+                )
             result = self._command(msg.command, params)
             self.commands.append(ReceivedCommand(self.t_s, msg.command, params, result))
-            self._send(self._mav.command_ack_encode(
-                msg.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()
-            ))
+            self._send(
+                self._mav.command_ack_encode(
+                    msg.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()
+                )
+            )
             self._after_ack(msg.command, params, result)
         elif kind == "SET_POSITION_TARGET_LOCAL_NED":
             if msg.target_system not in (0, self.cfg.system_id):
@@ -746,8 +810,14 @@ class Emulator:
             if not msg.start_stop:
                 interval = 0.0
             groups = {
-                0: ["LOCAL_POSITION_NED", "GLOBAL_POSITION_INT", "SYS_STATUS",
-                    "EXTENDED_SYS_STATE", "ATTITUDE", "GPS_RAW_INT"],
+                0: [
+                    "LOCAL_POSITION_NED",
+                    "GLOBAL_POSITION_INT",
+                    "SYS_STATUS",
+                    "EXTENDED_SYS_STATE",
+                    "ATTITUDE",
+                    "GPS_RAW_INT",
+                ],
                 2: ["SYS_STATUS", "EXTENDED_SYS_STATE", "GPS_RAW_INT"],
                 6: ["LOCAL_POSITION_NED", "GLOBAL_POSITION_INT"],
                 10: ["ATTITUDE"],
@@ -788,9 +858,11 @@ class Emulator:
 
     def _send_param(self, pid: str, value: float, index: int) -> None:
         params = self._params()
-        self._send(self._mav.param_value_encode(
-            pid.encode()[:16], value, mavlink2.MAV_PARAM_TYPE_REAL32, len(params), index
-        ))
+        self._send(
+            self._mav.param_value_encode(
+                pid.encode()[:16], value, mavlink2.MAV_PARAM_TYPE_REAL32, len(params), index
+            )
+        )
 
     def _param_read(self, pid: str, index: int) -> None:
         params = self._params()
@@ -819,10 +891,19 @@ class Emulator:
                 used = True
         if used:
             self.target = np.array([msg.x, msg.y, msg.z], dtype=float)
-        self.setpoints.append(ReceivedSetpoint(
-            self.t_s, msg.coordinate_frame, msg.type_mask, float(msg.x), float(msg.y),
-            float(msg.z), math.degrees(msg.yaw), mode, used,
-        ))
+        self.setpoints.append(
+            ReceivedSetpoint(
+                self.t_s,
+                msg.coordinate_frame,
+                msg.type_mask,
+                float(msg.x),
+                float(msg.y),
+                float(msg.z),
+                math.degrees(msg.yaw),
+                mode,
+                used,
+            )
+        )
 
     def _offboard_stream_ok(self) -> bool:
         return (
@@ -859,8 +940,11 @@ class Emulator:
                 self._intervals[name] = p[1] / 1e6
             self._next_due[name] = 0.0
             return M.MAV_RESULT_ACCEPTED
-        if command in (M.MAV_CMD_REQUEST_MESSAGE, M.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES,
-                       M.MAV_CMD_GET_HOME_POSITION):
+        if command in (
+            M.MAV_CMD_REQUEST_MESSAGE,
+            M.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES,
+            M.MAV_CMD_GET_HOME_POSITION,
+        ):
             if command == M.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
                 name = "AUTOPILOT_VERSION"
             elif command == M.MAV_CMD_GET_HOME_POSITION:
@@ -890,7 +974,11 @@ class Emulator:
             if name == "offboard" and not self._offboard_stream_ok():
                 self._statustext(4, "Switching to Offboard is currently not available")
                 return M.MAV_RESULT_TEMPORARILY_REJECTED
-            if name in ("offboard", "hold", "rtl", "land") and self.booted and not self._position_valid():
+            if (
+                name in ("offboard", "hold", "rtl", "land")
+                and self.booted
+                and not self._position_valid()
+            ):
                 self._statustext(4, f"Switching to {name} requires position")
                 return M.MAV_RESULT_DENIED
         else:
@@ -933,7 +1021,13 @@ class Emulator:
             self._statustext(2, prefix + reason)
             self._event(f"arming refused: {reason}")
             return M.MAV_RESULT_FAILED
-        if self.flavour == M.ARDUPILOT and self.mode not in ("guided", "stabilize", "hold", "althold", "poshold"):
+        if self.flavour == M.ARDUPILOT and self.mode not in (
+            "guided",
+            "stabilize",
+            "hold",
+            "althold",
+            "poshold",
+        ):
             self._statustext(2, f"Arm: Mode not armable ({self.mode})")
             return M.MAV_RESULT_FAILED
         self.armed = True

@@ -1,4 +1,4 @@
-"""The flight loop: frame -> policy -> next lattice target -> arrival, on a real or emulated vehicle.
+"""The flight loop: frame -> policy -> next lattice target -> arrival, on any vehicle.
 
 This is the only module of the bridge that touches ``geonav.policy`` (lazily,
 to load a checkpoint), so the backends never import torch. The loop talks to
@@ -250,8 +250,16 @@ def run_flight(
     takeover = False
     armed_once = False
     interrupted: BaseException | None = None
-    rec.write("header", scene=scene.name, bounds_m=scene.bounds_m, scene_origin=scene.origin,
-              config=asdict(cfg), policy_meta=meta, alt_m=alt_m, step_m=step_m)
+    rec.write(
+        "header",
+        scene=scene.name,
+        bounds_m=scene.bounds_m,
+        scene_origin=scene.origin,
+        config=asdict(cfg),
+        policy_meta=meta,
+        alt_m=alt_m,
+        step_m=step_m,
+    )
     try:
         report("connect", 0.0)
         vehicle.connect(t.connect_s)
@@ -265,27 +273,29 @@ def run_flight(
         planner = TargetPlanner(scene.frame, s.origin, s.position.down_m, alt_m, cfg.yaw_deg)
         home_scene, _ = planner.to_scene(s.position)
         fence = Geofence.from_bounds(
-            scene.bounds_m, cfg.fence_margin_m, home=home_scene,
-            max_distance_m=cfg.max_distance_m, max_alt_m=cfg.max_alt_m,
+            scene.bounds_m,
+            cfg.fence_margin_m,
+            home=home_scene,
+            max_distance_m=cfg.max_distance_m,
+            max_alt_m=cfg.max_alt_m,
         )
         fence.check(home_scene)
         clamped = fence.clamp_alt(alt_m)
         if clamped != alt_m:
             rec.event(f"altitude {alt_m} m clamped to {clamped} m")
             planner.alt_m = alt_m = clamped
-        region = cfg.region_m or (
-            fence.xmin_m, fence.ymin_m, fence.xmax_m, fence.ymax_m
-        )
+        region = cfg.region_m or (fence.xmin_m, fence.ymin_m, fence.xmax_m, fence.ymax_m)
         lattice = Lattice(region, step_m)
         start_cell = cfg.start_cell or lattice.cell_of(home_scene)
         for name, c in (("start", start_cell), ("target", cfg.target_cell)):
             if not lattice.contains(c):
-                raise ConfigError(f"{name} cell {c} is outside the lattice of shape {lattice.shape}")
+                raise ConfigError(
+                    f"{name} cell {c} is outside the lattice of shape {lattice.shape}"
+                )
         start_pt = lattice.center(start_cell)
         target_pt = lattice.center(cfg.target_cell)
         start_xy, target_xy = (start_pt.x_m, start_pt.y_m), (target_pt.x_m, target_pt.y_m)
-        for name, p in (("start", start_pt),):
-            fence.check(p)
+        fence.check(start_pt)
 
         renderer = WarpRenderer(scene, camera)
         target_img = renderer.render(target_pt.x_m, target_pt.y_m, alt_m, cfg.yaw_deg)
@@ -308,8 +318,12 @@ def run_flight(
                 raise SafetyViolation(f"setpoint altitude {alt:.1f} m outside the altitude band")
 
         pump = SetpointPump(
-            vehicle, rate_hz=cfg.pump_rate_hz, deadline_s=cfg.policy_deadline_s,
-            fence_check=fence_check, watchdog=watchdog, land_timeout_s=t.command_s,
+            vehicle,
+            rate_hz=cfg.pump_rate_hz,
+            deadline_s=cfg.policy_deadline_s,
+            fence_check=fence_check,
+            watchdog=watchdog,
+            land_timeout_s=t.command_s,
         )
         report("take-off", 0.0)
         take_off(vehicle, pump, planner.to_ned(home_scene), cfg.yaw_deg, cfg.arrive_alt_tol_m, t)
@@ -323,8 +337,16 @@ def run_flight(
         previous = start_pt
         ned = planner.to_ned(start_pt)
         pump.set_target(ned, cfg.yaw_deg)
-        _wait_arrival(vehicle, pump, watchdog, ned, cfg, rec, planner,
-                      step_timeout + horizontal_distance_m(ned, vehicle.state().position or ned) / 2.0)
+        _wait_arrival(
+            vehicle,
+            pump,
+            watchdog,
+            ned,
+            cfg,
+            rec,
+            planner,
+            step_timeout + horizontal_distance_m(ned, vehicle.state().position or ned) / 2.0,
+        )
         cell = start_cell
         rec.event(f"at start cell {cell}")
         policy.reset()
@@ -351,28 +373,52 @@ def run_flight(
             nxt_cell = lattice.cell_of(nxt)
             if not lattice.contains(nxt_cell):
                 # As in the environment: a move out of the region leaves the agent in place.
-                rec.write("step", step=steps, action=action, action_name=ACTION_NAMES[action],
-                          cell=cell, blocked=True, events=["move out of the lattice: stayed"])
+                rec.write(
+                    "step",
+                    step=steps,
+                    action=action,
+                    action_name=ACTION_NAMES[action],
+                    cell=cell,
+                    blocked=True,
+                    events=["move out of the lattice: stayed"],
+                )
                 continue
             ned = planner.to_ned(nxt)
             try:
                 pump.set_target(ned, cfg.yaw_deg)
             except SafetyViolation as err:
-                rec.write("step", step=steps, action=action, action_name=ACTION_NAMES[action],
-                          cell=cell, target_scene=None, refused_target=(nxt.x_m, nxt.y_m),
-                          events=[f"geofence: {err}"])
+                rec.write(
+                    "step",
+                    step=steps,
+                    action=action,
+                    action_name=ACTION_NAMES[action],
+                    cell=cell,
+                    target_scene=None,
+                    refused_target=(nxt.x_m, nxt.y_m),
+                    events=[f"geofence: {err}"],
+                )
                 raise
             latency_ms = (time.perf_counter() - t_frame) * 1000.0
             latencies.append(latency_ms)
-            arrival_s, measured = _wait_arrival(vehicle, pump, watchdog, ned, cfg, rec, planner, step_timeout)
+            arrival_s, measured = _wait_arrival(
+                vehicle, pump, watchdog, ned, cfg, rec, planner, step_timeout
+            )
             m_scene, m_alt = planner.to_scene(measured)
             previous, cell = nxt, nxt_cell
             rec.write(
-                "step", step=steps, action=action, action_name=ACTION_NAMES[action], cell=cell,
-                target_scene=(nxt.x_m, nxt.y_m), target_ned=(ned.north_m, ned.east_m, ned.down_m),
+                "step",
+                step=steps,
+                action=action,
+                action_name=ACTION_NAMES[action],
+                cell=cell,
+                target_scene=(nxt.x_m, nxt.y_m),
+                target_ned=(ned.north_m, ned.east_m, ned.down_m),
                 measured_ned=(measured.north_m, measured.east_m, measured.down_m),
-                measured_scene=(m_scene.x_m, m_scene.y_m), measured_alt_m=m_alt,
-                arrival_s=round(arrival_s, 3), latency_ms=round(latency_ms, 3), events=[],
+                measured_scene=(m_scene.x_m, m_scene.y_m),
+                measured_alt_m=m_alt,
+                arrival_s=round(arrival_s, 3),
+                latency_ms=round(latency_ms, 3),
+                events=[],
             )
     except SafetyViolation as err:
         reason = f"safety: {err}"
@@ -399,12 +445,18 @@ def run_flight(
             frames.close()
     png = None
     try:
-        if cfg.camera == "synthetic" or True:
-            png = rec.plot(scene, lattice, start_xy, target_xy, fence)
+        png = rec.plot(scene, lattice, start_xy, target_xy, fence)
     except (OSError, ValueError) as err:
         log.warning("track plot failed: %s", err)
-    rec.write("result", success=success, reason=reason, steps=steps, final_cell=cell,
-              end_action=end_action, disarmed=disarmed)
+    rec.write(
+        "result",
+        success=success,
+        reason=reason,
+        steps=steps,
+        final_cell=cell,
+        end_action=end_action,
+        disarmed=disarmed,
+    )
     rec.close()
     try:
         vehicle.close()
@@ -413,8 +465,18 @@ def run_flight(
     report("done", 1.0)
     if interrupted is not None and isinstance(interrupted, KeyboardInterrupt):
         raise interrupted
-    return FlightResult(success, reason, steps, cell, cfg.target_cell, end_action, disarmed,
-                        rec.path, png, latencies)
+    return FlightResult(
+        success,
+        reason,
+        steps,
+        cell,
+        cfg.target_cell,
+        end_action,
+        disarmed,
+        rec.path,
+        png,
+        latencies,
+    )
 
 
 def _check(watchdog: Watchdog, s: VehicleState) -> None:
@@ -453,12 +515,17 @@ def _wait_arrival(
                 last_sample = now
             d_h = horizontal_distance_m(s.position, target)
             d_v = abs(s.position.down_m - target.down_m)
-            if d_h <= cfg.arrive_tol_m and d_v <= cfg.arrive_alt_tol_m and s.speed_mps <= cfg.arrive_speed_mps:
+            if (
+                d_h <= cfg.arrive_tol_m
+                and d_v <= cfg.arrive_alt_tol_m
+                and s.speed_mps <= cfg.arrive_speed_mps
+            ):
                 return now - t0, s.position
         if now - t0 > timeout_s:
             raise FlightTimeout(
-                f"not arrived at NED ({target.north_m:.1f}, {target.east_m:.1f}, {target.down_m:.1f}) "
-                f"within {timeout_s:.1f} s (last position {s.position}, speed {s.speed_mps:.2f} m/s)"
+                f"not arrived at NED ({target.north_m:.1f}, {target.east_m:.1f}, "
+                f"{target.down_m:.1f}) within {timeout_s:.1f} s (last position {s.position}, "
+                f"speed {s.speed_mps:.2f} m/s)"
             )
         time.sleep(0.02)
 
@@ -538,8 +605,13 @@ def fly(
     if not isinstance(scene, Scene):
         scene = Scene.open(scene)
     pol: Policy = load_policy(policy) if isinstance(policy, (str, Path)) else policy
-    cfg = FlightConfig(target_cell=tuple(target_cell), start_cell=start_cell, end=end,  # type: ignore[arg-type]
-                       camera=camera, **config)
+    cfg = FlightConfig(
+        target_cell=tuple(target_cell),
+        start_cell=start_cell,
+        end=end,  # type: ignore[arg-type]
+        camera=camera,
+        **config,
+    )
     emu = None
     if dry_run:
         from geonav.mavlink_bridge.emulator import Emulator, EmulatorConfig
@@ -551,11 +623,21 @@ def fly(
         lattice = Lattice(cfg.region_m or (xmin + m, ymin + m, xmax - m, ymax - m), step_m)
         if start_cell is None:
             start_cell = (lattice.shape[0] // 2, lattice.shape[1] // 2)
-            cfg = FlightConfig(**{**{f: getattr(cfg, f) for f in cfg.__dataclass_fields__},
-                                  "start_cell": start_cell})
+            cfg = FlightConfig(
+                **{
+                    **{f: getattr(cfg, f) for f in cfg.__dataclass_fields__},
+                    "start_cell": start_cell,
+                }
+            )
         home = scene.frame.to_lonlat(lattice.center(start_cell), 0.0)
-        ec = emulator_config or EmulatorConfig(autopilot=autopilot, time_scale=4.0, boot_s=1.0,
-                                               prearm_s=2.0, origin_s=1.0, local_position_s=1.5)
+        ec = emulator_config or EmulatorConfig(
+            autopilot=autopilot,
+            time_scale=4.0,
+            boot_s=1.0,
+            prearm_s=2.0,
+            origin_s=1.0,
+            local_position_s=1.5,
+        )
         ec.home = home
         ec.autopilot = autopilot if emulator_config is None else ec.autopilot
         emu = Emulator(ec).start()

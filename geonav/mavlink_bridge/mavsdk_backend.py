@@ -69,7 +69,9 @@ class MavsdkVehicle:
         self._want_sysid = system_id
         self._use_offboard = use_offboard_plugin
         self._loop = asyncio.new_event_loop()
-        self._thread = threading.Thread(target=self._loop.run_forever, name="mavsdk-loop", daemon=True)
+        self._thread = threading.Thread(
+            target=self._loop.run_forever, name="mavsdk-loop", daemon=True
+        )
         self._lock = threading.Lock()
         self._tasks: list[asyncio.Task[Any]] = []
         self._mav: Any = None
@@ -112,11 +114,15 @@ class MavsdkVehicle:
         self._thread.start()
 
         async def setup() -> None:
-            self._mav = Mavsdk(Configuration.create_with_component_type(ComponentType.COMPANION_COMPUTER))
+            self._mav = Mavsdk(
+                Configuration.create_with_component_type(ComponentType.COMPANION_COMPUTER)
+            )
             await self._mav.add_any_connection(self.conn.mavsdk())
             deadline = time.monotonic() + timeout_s
             while True:
-                system = await self._mav.first_autopilot(timeout_s=max(0.1, deadline - time.monotonic()))
+                system = await self._mav.first_autopilot(
+                    timeout_s=max(0.1, deadline - time.monotonic())
+                )
                 if system is None:
                     raise FlightTimeout(
                         f"no autopilot on {self.conn.mavsdk()!r} within {timeout_s:.0f} s "
@@ -136,20 +142,31 @@ class MavsdkVehicle:
             kind = await system.autopilot_type()
             self.autopilot = {1: M.PX4, 2: M.ARDUPILOT}.get(int(kind), "")
             loop = asyncio.get_running_loop()
-            for coro in (self._watch_heartbeat(), self._watch_position(), self._watch_texts(),
-                         self._watch_home(), self._watch_landed()):
+            for coro in (
+                self._watch_heartbeat(),
+                self._watch_position(),
+                self._watch_texts(),
+                self._watch_home(),
+                self._watch_landed(),
+            ):
                 self._tasks.append(loop.create_task(coro))
 
         self._run(setup(), timeout_s + 5.0, "connect")
         deadline = time.monotonic() + timeout_s
         while self._hb is None:
             if time.monotonic() > deadline:
-                raise FlightTimeout("MAVSDK saw the autopilot but no HEARTBEAT from its component 1")
+                raise FlightTimeout(
+                    "MAVSDK saw the autopilot but no HEARTBEAT from its component 1"
+                )
             time.sleep(0.02)
         if not self.autopilot:
             self.autopilot = M.flavour_from_heartbeat(int(self._hb["autopilot"]))
-        log.info("MAVSDK connected to %s autopilot sysid %d on %s", self.autopilot, self._sysid,
-                 self.conn.mavsdk())
+        log.info(
+            "MAVSDK connected to %s autopilot sysid %d on %s",
+            self.autopilot,
+            self._sysid,
+            self.conn.mavsdk(),
+        )
 
     async def _watch_heartbeat(self) -> None:
         async for msg in self._direct.subscribe_message("HEARTBEAT"):
@@ -196,6 +213,7 @@ class MavsdkVehicle:
             return
         self._closed = True
         if self._thread.is_alive():
+
             async def shutdown() -> None:
                 for task in self._tasks:
                     task.cancel()
@@ -239,20 +257,25 @@ class MavsdkVehicle:
 
         p = tuple(params) + (0.0,) * (7 - len(params))
         fields: dict[str, Any] = {
-            "target_system": self._sysid, "target_component": M.MAV_COMP_ID_AUTOPILOT1,
-            "command": command, "confirmation": 0,
+            "target_system": self._sysid,
+            "target_component": M.MAV_COMP_ID_AUTOPILOT1,
+            "command": command,
+            "confirmation": 0,
         }
         for i, v in enumerate(p, start=1):
             # JSON has no NaN; 0 means "unchanged/default" for the params used here.
             fields[f"param{i}"] = 0.0 if math.isnan(float(v)) else float(v)
-        msg = MavlinkMessage("COMMAND_LONG", 0, 0, self._sysid, M.MAV_COMP_ID_AUTOPILOT1,
-                             json.dumps(fields))
+        msg = MavlinkMessage(
+            "COMMAND_LONG", 0, 0, self._sysid, M.MAV_COMP_ID_AUTOPILOT1, json.dumps(fields)
+        )
         ack = self._run(self._direct.send_command(msg), timeout_s, f"command {command}")
         if not ack.fields_json:
             raise FlightTimeout(f"no COMMAND_ACK for MAV_CMD {command} (MAVSDK)")
         return int(json.loads(ack.fields_json)["result"])
 
-    def _checked(self, command: int, params: tuple[float, ...], timeout_s: float, what: str) -> None:
+    def _checked(
+        self, command: int, params: tuple[float, ...], timeout_s: float, what: str
+    ) -> None:
         result = self._command(command, params, timeout_s)
         if result != M.MAV_RESULT_ACCEPTED:
             text = self._texts[-1] if self._texts else ""
@@ -270,7 +293,8 @@ class MavsdkVehicle:
         except ActionError as err:
             text = self._texts[-1] if self._texts else ""
             raise CommandRejected(
-                f"{name}: MAVSDK action failed ({err})" + (f" (autopilot says: {text!r})" if text else "")
+                f"{name}: MAVSDK action failed ({err})"
+                + (f" (autopilot says: {text!r})" if text else "")
             ) from err
 
     def request_telemetry(self, rate_hz: float, timeout_s: float) -> None:
@@ -278,8 +302,11 @@ class MavsdkVehicle:
         from mavsdk.plugins.telemetry import TelemetryError
 
         async def rates() -> None:
-            for name, hz in (("set_rate_position_velocity_ned", rate_hz), ("set_rate_home", 0.5),
-                             ("set_rate_landed_state", 1.0)):
+            for name, hz in (
+                ("set_rate_position_velocity_ned", rate_hz),
+                ("set_rate_home", 0.5),
+                ("set_rate_landed_state", 1.0),
+            ):
                 try:
                     await getattr(self._telemetry, name)(hz)
                 except TelemetryError as err:
@@ -310,7 +337,8 @@ class MavsdkVehicle:
         try:
             self._run(
                 self._act.set_gps_global_origin(origin.lat_deg, origin.lon_deg, origin.alt_m),
-                5.0, "set origin",
+                5.0,
+                "set origin",
             )
         except ActionError as err:
             raise CommandRejected(f"SET_GPS_GLOBAL_ORIGIN failed: {err}") from err
@@ -318,7 +346,9 @@ class MavsdkVehicle:
     def set_mode(self, name: str, timeout_s: float) -> None:
         """DO_SET_MODE by generic name, ACK checked (MavlinkDirect)."""
         params = M.encode_mode(self.autopilot, name)
-        self._checked(M.MAV_CMD_DO_SET_MODE, tuple(float(v) for v in params), timeout_s, f"mode {name}")
+        self._checked(
+            M.MAV_CMD_DO_SET_MODE, tuple(float(v) for v in params), timeout_s, f"mode {name}"
+        )
 
     def arm(self, timeout_s: float) -> None:
         """``Action.arm``."""
@@ -330,8 +360,12 @@ class MavsdkVehicle:
 
     def takeoff(self, alt_m: float, timeout_s: float) -> None:
         """NAV_TAKEOFF with p7 = altitude above home (ArduPilot GUIDED semantics)."""
-        self._checked(M.MAV_CMD_NAV_TAKEOFF, (0, 0, 0, math.nan, 0, 0, float(alt_m)), timeout_s,
-                      f"take-off to {alt_m:.1f} m")
+        self._checked(
+            M.MAV_CMD_NAV_TAKEOFF,
+            (0, 0, 0, math.nan, 0, 0, float(alt_m)),
+            timeout_s,
+            f"take-off to {alt_m:.1f} m",
+        )
 
     def land(self, timeout_s: float) -> None:
         """``Action.land`` (MAV_CMD_NAV_LAND)."""
@@ -353,15 +387,31 @@ class MavsdkVehicle:
         from mavsdk.plugins.mavlink_direct import MavlinkMessage
 
         fields = {
-            "time_boot_ms": 0, "target_system": self._sysid,
+            "time_boot_ms": 0,
+            "target_system": self._sysid,
             "target_component": M.MAV_COMP_ID_AUTOPILOT1,
-            "coordinate_frame": M.MAV_FRAME_LOCAL_NED, "type_mask": M.TYPE_MASK_POSITION_YAW,
-            "x": target.north_m, "y": target.east_m, "z": target.down_m,
-            "vx": 0.0, "vy": 0.0, "vz": 0.0, "afx": 0.0, "afy": 0.0, "afz": 0.0,
-            "yaw": math.radians(yaw_deg), "yaw_rate": 0.0,
+            "coordinate_frame": M.MAV_FRAME_LOCAL_NED,
+            "type_mask": M.TYPE_MASK_POSITION_YAW,
+            "x": target.north_m,
+            "y": target.east_m,
+            "z": target.down_m,
+            "vx": 0.0,
+            "vy": 0.0,
+            "vz": 0.0,
+            "afx": 0.0,
+            "afy": 0.0,
+            "afz": 0.0,
+            "yaw": math.radians(yaw_deg),
+            "yaw_rate": 0.0,
         }
-        msg = MavlinkMessage("SET_POSITION_TARGET_LOCAL_NED", 0, 0, self._sysid,
-                             M.MAV_COMP_ID_AUTOPILOT1, json.dumps(fields))
+        msg = MavlinkMessage(
+            "SET_POSITION_TARGET_LOCAL_NED",
+            0,
+            0,
+            self._sysid,
+            M.MAV_COMP_ID_AUTOPILOT1,
+            json.dumps(fields),
+        )
         self._run(self._direct.send_message(msg), 1.0, "setpoint")
 
     def stop_setpoints(self) -> None:

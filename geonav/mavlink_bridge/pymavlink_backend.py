@@ -116,7 +116,10 @@ class PymavlinkVehicle:
             )
         log.info(
             "connected to %s autopilot sysid %d compid %d on %s",
-            self.autopilot, self._target[0], self._target[1], self.conn.raw,
+            self.autopilot,
+            self._target[0],
+            self._target[1],
+            self.conn.raw,
         )
 
     def close(self) -> None:
@@ -207,7 +210,8 @@ class PymavlinkVehicle:
                 self._landed_state = msg.landed_state
             elif kind == "COMMAND_ACK":
                 if msg.target_system in (0, self._src[0]) and msg.target_component in (
-                    0, self._src[1]
+                    0,
+                    self._src[1],
                 ):
                     self._acks[msg.command] = msg
             elif kind == "STATUSTEXT":
@@ -243,7 +247,9 @@ class PymavlinkVehicle:
             )
 
     # ------------------------------------------------------------ commands
-    def command(self, command: int, params: tuple[float, ...], timeout_s: float, tries: int = 3) -> int:
+    def command(
+        self, command: int, params: tuple[float, ...], timeout_s: float, tries: int = 3
+    ) -> int:
         """Send COMMAND_LONG and return the ACK's result (any result, not only ACCEPTED).
 
         Raises:
@@ -254,9 +260,7 @@ class PymavlinkVehicle:
         with self._lock:
             self._acks.pop(command, None)
         for attempt in range(tries):
-            self._send(
-                "command_long_send", self._target[0], self._target[1], command, attempt, *p
-            )
+            self._send("command_long_send", self._target[0], self._target[1], command, attempt, *p)
             deadline = time.monotonic() + per_try
             with self._lock:
                 while True:
@@ -276,7 +280,9 @@ class PymavlinkVehicle:
             f"no COMMAND_ACK for {command_name(command)} after {tries} tries in {timeout_s:.1f} s"
         )
 
-    def _checked(self, command: int, params: tuple[float, ...], timeout_s: float, what: str) -> None:
+    def _checked(
+        self, command: int, params: tuple[float, ...], timeout_s: float, what: str
+    ) -> None:
         result = self.command(command, params, timeout_s)
         if result != M.MAV_RESULT_ACCEPTED:
             reason = self._recent_text()
@@ -303,7 +309,9 @@ class PymavlinkVehicle:
         for name, us in streams.items():
             result = self.command(M.MAV_CMD_SET_MESSAGE_INTERVAL, (M.MSG_ID[name], us), timeout_s)
             if result != M.MAV_RESULT_ACCEPTED:
-                log.warning("SET_MESSAGE_INTERVAL %s answered %s", name, M.MAV_RESULT_NAMES.get(result))
+                log.warning(
+                    "SET_MESSAGE_INTERVAL %s answered %s", name, M.MAV_RESULT_NAMES.get(result)
+                )
         self.request_message("GPS_GLOBAL_ORIGIN", timeout_s)
         self.request_message("HOME_POSITION", timeout_s)
 
@@ -315,15 +323,19 @@ class PymavlinkVehicle:
     def set_origin(self, origin: LonLat) -> None:
         """SET_GPS_GLOBAL_ORIGIN (a message, no ACK: watch GPS_GLOBAL_ORIGIN)."""
         self._send(
-            "set_gps_global_origin_send", self._target[0],
-            int(round(origin.lat_deg * 1e7)), int(round(origin.lon_deg * 1e7)),
+            "set_gps_global_origin_send",
+            self._target[0],
+            int(round(origin.lat_deg * 1e7)),
+            int(round(origin.lon_deg * 1e7)),
             int(round(origin.alt_m * 1000)),
         )
 
     def set_mode(self, name: str, timeout_s: float) -> None:
         """DO_SET_MODE by generic name; ACK checked."""
         params = M.encode_mode(self.autopilot, name)
-        self._checked(M.MAV_CMD_DO_SET_MODE, tuple(float(v) for v in params), timeout_s, f"mode {name}")
+        self._checked(
+            M.MAV_CMD_DO_SET_MODE, tuple(float(v) for v in params), timeout_s, f"mode {name}"
+        )
 
     def arm(self, timeout_s: float) -> None:
         """One arming attempt."""
@@ -336,8 +348,10 @@ class PymavlinkVehicle:
     def takeoff(self, alt_m: float, timeout_s: float) -> None:
         """MAV_CMD_NAV_TAKEOFF, p7 = altitude above home (ArduPilot semantics)."""
         self._checked(
-            M.MAV_CMD_NAV_TAKEOFF, (0, 0, 0, math.nan, math.nan, math.nan, float(alt_m)),
-            timeout_s, f"take-off to {alt_m:.1f} m",
+            M.MAV_CMD_NAV_TAKEOFF,
+            (0, 0, 0, math.nan, math.nan, math.nan, float(alt_m)),
+            timeout_s,
+            f"take-off to {alt_m:.1f} m",
         )
 
     def land(self, timeout_s: float) -> None:
@@ -352,10 +366,23 @@ class PymavlinkVehicle:
         """One SET_POSITION_TARGET_LOCAL_NED, MAV_FRAME_LOCAL_NED, type_mask 2552."""
         t_ms = int((time.monotonic() - self._t0) * 1000) & 0xFFFFFFFF
         self._send(
-            "set_position_target_local_ned_send", t_ms, self._target[0], self._target[1],
-            M.MAV_FRAME_LOCAL_NED, M.TYPE_MASK_POSITION_YAW,
-            float(target.north_m), float(target.east_m), float(target.down_m),
-            0.0, 0.0, 0.0, 0.0, 0.0, 0.0, math.radians(yaw_deg), 0.0,
+            "set_position_target_local_ned_send",
+            t_ms,
+            self._target[0],
+            self._target[1],
+            M.MAV_FRAME_LOCAL_NED,
+            M.TYPE_MASK_POSITION_YAW,
+            float(target.north_m),
+            float(target.east_m),
+            float(target.down_m),
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+            math.radians(yaw_deg),
+            0.0,
         )
 
     def stop_setpoints(self) -> None:

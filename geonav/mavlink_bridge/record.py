@@ -93,7 +93,10 @@ class FlightRecorder:
             ax.plot(
                 [fence.xmin_m, fence.xmax_m, fence.xmax_m, fence.xmin_m, fence.xmin_m],
                 [fence.ymin_m, fence.ymin_m, fence.ymax_m, fence.ymax_m, fence.ymin_m],
-                color="orange", lw=1.5, ls="--", label="geofence",
+                color="orange",
+                lw=1.5,
+                ls="--",
+                label="geofence",
             )
         if self.track_xy:
             xy = np.asarray(self.track_xy)
@@ -103,9 +106,13 @@ class FlightRecorder:
             t = np.asarray(targets)
             ax.scatter(t[:, 0], t[:, 1], s=12, color="yellow", zorder=3, label="step targets")
         if start is not None:
-            ax.scatter([start[0]], [start[1]], marker="o", s=80, color="cyan", zorder=4, label="start")
+            ax.scatter(
+                [start[0]], [start[1]], marker="o", s=80, color="cyan", zorder=4, label="start"
+            )
         if target is not None:
-            ax.scatter([target[0]], [target[1]], marker="*", s=200, color="lime", zorder=4, label="target")
+            ax.scatter(
+                [target[0]], [target[1]], marker="*", s=200, color="lime", zorder=4, label="target"
+            )
         ax.set_xlabel("x east (m)")
         ax.set_ylabel("y north (m)")
         ax.set_title(f"geonav flight over {getattr(scene, 'name', 'scene')}")

@@ -61,7 +61,10 @@ class Geofence:
         if self.home is not None and math.isfinite(self.max_distance_m):
             d = math.hypot(p.x_m - self.home.x_m, p.y_m - self.home.y_m)
             if d > self.max_distance_m:
-                return f"scene point ({p.x_m:.1f}, {p.y_m:.1f}) m is {d:.1f} m from home (max {self.max_distance_m:.1f} m)"
+                return (
+                    f"scene point ({p.x_m:.1f}, {p.y_m:.1f}) m is {d:.1f} m from home "
+                    f"(max {self.max_distance_m:.1f} m)"
+                )
         return None
 
     def contains(self, p: ScenePoint) -> bool:

@@ -147,8 +147,9 @@ def set_mode_confirmed(
             time.sleep(0.3)
             continue
         try:
-            wait_until(vehicle, lambda s: s.mode == name, min(1.5, t.mode_s), f"mode {name}",
-                       check=alive)
+            wait_until(
+                vehicle, lambda s: s.mode == name, min(1.5, t.mode_s), f"mode {name}", check=alive
+            )
             time.sleep(0.1)
             if vehicle.state().mode == name:
                 return
@@ -156,7 +157,9 @@ def set_mode_confirmed(
             last = err
     if isinstance(last, CommandRejected):
         raise CommandRejected(f"mode {name} refused for {t.mode_s:.0f} s: {last}") from last
-    raise FlightTimeout(f"mode {name} not confirmed by the heartbeat within {t.mode_s:.0f} s") from last
+    raise FlightTimeout(
+        f"mode {name} not confirmed by the heartbeat within {t.mode_s:.0f} s"
+    ) from last
 
 
 def arm_with_retry(vehicle: Vehicle, t: Timeouts, alive: Callable[[], None] | None = None) -> None:
@@ -174,7 +177,9 @@ def arm_with_retry(vehicle: Vehicle, t: Timeouts, alive: Callable[[], None] | No
             alive()
         try:
             vehicle.arm(t.command_s)
-            wait_until(vehicle, lambda s: s.armed, t.mode_s, "armed state in HEARTBEAT", check=alive)
+            wait_until(
+                vehicle, lambda s: s.armed, t.mode_s, "armed state in HEARTBEAT", check=alive
+            )
             log.info("armed after %d attempt(s)", attempts)
             return
         except CommandRejected as err:
@@ -182,7 +187,8 @@ def arm_with_retry(vehicle: Vehicle, t: Timeouts, alive: Callable[[], None] | No
             log.warning("arming attempt %d refused: %s", attempts, err)
         if time.monotonic() + t.arm_retry_s > deadline:
             raise CommandRejected(
-                f"vehicle refused to arm for {t.arm_s:.0f} s ({attempts} attempts); last reason: {last}"
+                f"vehicle refused to arm for {t.arm_s:.0f} s ({attempts} attempts); "
+                f"last reason: {last}"
             )
         _sleep_alive(t.arm_retry_s, alive)
 
@@ -219,21 +225,32 @@ def take_off(
         pump.set_target(climb_target, yaw_deg)
 
     def reached(st: VehicleState) -> bool:
-        return st.position is not None and abs(st.position.down_m - climb_target.down_m) < alt_tolerance_m
+        return (
+            st.position is not None
+            and abs(st.position.down_m - climb_target.down_m) < alt_tolerance_m
+        )
 
     def guard() -> None:
         pump.tick()
         st = vehicle.state()
         if not st.armed:
-            raise FlightError(f"vehicle disarmed during take-off (mode {st.mode}); last text {st.last_statustext!r}")
+            raise FlightError(
+                f"vehicle disarmed during take-off (mode {st.mode}); "
+                f"last text {st.last_statustext!r}"
+            )
         pump.raise_if_fault()
 
     if vehicle.autopilot != M.PX4:
         # Wait until clearly airborne before streaming position targets.
         wait_until(
             vehicle,
-            lambda st: st.position is not None and home_down - st.position.down_m > min(1.0, alt_above_home / 2),
-            t.takeoff_s, "climb after NAV_TAKEOFF", check=guard,
+            lambda st: (
+                st.position is not None
+                and home_down - st.position.down_m > min(1.0, alt_above_home / 2)
+            ),
+            t.takeoff_s,
+            "climb after NAV_TAKEOFF",
+            check=guard,
         )
         pump.start()
     wait_until(vehicle, reached, t.takeoff_s, f"take-off to {alt_above_home:.1f} m", check=guard)

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
 from geonav.errors import ConfigError, FlightError
-from geonav.geo import LonLat, LocalNED
+from geonav.geo import LocalNED, LonLat
 
 BACKENDS = ("pymavlink", "mavsdk")
 
@@ -174,7 +174,9 @@ def parse_connection(url: str, baud: int | None = None) -> Connection:
     kind = m["kind"]
     kind = {"udp": "udpin", "tcpout": "tcp", "tcpclient": "tcp"}.get(kind, kind)
     if kind not in ("udpin", "udpout", "tcp", "tcpin"):
-        raise ConfigError(f"connection kind {m['kind']!r} in {url!r}: use udpin, udpout, tcp, tcpin")
+        raise ConfigError(
+            f"connection kind {m['kind']!r} in {url!r}: use udpin, udpout, tcp, tcpin"
+        )
     return Connection(kind, m["host"] or "0.0.0.0", int(m["port"]), raw=url)
 
 
