@@ -124,7 +124,7 @@ def make_meta(net_cfg: NetConfig, encoder: FrozenEncoder | None, env: Any, *, al
         "algorithm": algorithm,
         "episodes": int(episodes),
         "geonav_version": geonav.__version__,
-        "torch_version": torch.__version__,
+        "torch_version": str(torch.__version__),
         "config": config or {},
     })
     return meta
@@ -136,7 +136,7 @@ def save_checkpoint(path: str | os.PathLike[str], model_state: dict[str, torch.T
     """Write a checkpoint atomically (temp file in the same folder + ``os.replace``)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    json.dumps(meta)  # fail before writing anything if meta is not JSON-able
+    meta = json.loads(json.dumps(meta))  # plain JSON types only; fails before any write
     blob = {"format": FORMAT, "format_version": FORMAT_VERSION,
             "model": {k: v.detach().clone() for k, v in model_state.items()},
             "optimizer": optimizer_state, "rng": rng, "meta": meta}
@@ -166,8 +166,10 @@ def load_checkpoint(path: str | os.PathLike[str]) -> Checkpoint:
         blob = torch.load(path, map_location="cpu", weights_only=True)
     except (RuntimeError, EOFError, OSError, ValueError, zipfile.BadZipFile,
             __import__("pickle").UnpicklingError) as err:
+        lines = [ln.strip() for ln in str(err).splitlines() if ln.strip()] or [""]
+        why = next((ln for ln in lines if "WeightsUnpickler error" in ln), lines[0])[:200]
         raise CheckpointError(f"checkpoint {path} is corrupt or truncated and cannot be read "
-                              f"({type(err).__name__}: {str(err).splitlines()[0][:200]}); "
+                              f"({type(err).__name__}: {why}); "
                               "use another checkpoint, e.g. the run's checkpoints/latest.pt") \
             from err
     if not isinstance(blob, dict) or blob.get("format") != FORMAT:
