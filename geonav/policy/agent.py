@@ -7,6 +7,8 @@ and the flight policy act identically.
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -14,6 +16,24 @@ import torch
 
 from geonav.policy.encoders import FrozenEncoder, cache_key
 from geonav.policy.model import ActorCritic, State
+
+
+@contextlib.contextmanager
+def torch_threads(n: int | None) -> Iterator[None]:
+    """Run a block with ``n`` torch intra-op threads (None: leave as is), then restore.
+
+    Batch-1 policy steps are tiny: on a busy small CPU, 2 threads were 15-25x slower
+    than 1 here (threads wait for each other), so acting defaults to one thread.
+    """
+    old = torch.get_num_threads()
+    if n is None or n == old:
+        yield
+        return
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(old)
 
 
 def view_input(image: np.ndarray, frozen: FrozenEncoder | None,

@@ -12,7 +12,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from geonav.policy.agent import Agent
+from geonav.policy.agent import Agent, torch_threads
 from geonav.policy.encoders import FrozenEncoder
 from geonav.policy.model import ActorCritic
 
@@ -102,7 +102,8 @@ def run_episode(actor: Actor, env: Any, task_index: int, start: tuple[int, int]
 def evaluate(policy: ActorCritic | Actor, env: Any, *, frozen: FrozenEncoder | None = None,
              episodes_per_task: int = 20, seed: int = 0, greedy: bool = True,
              starts: list[Start] | None = None,
-             progress: Callable[[int, int], None] | None = None) -> EvalResult:
+             progress: Callable[[int, int], None] | None = None,
+             threads: int | None = 1) -> EvalResult:
     """Run ``policy`` from fixed seeded starts.
 
     Args:
@@ -115,6 +116,7 @@ def evaluate(policy: ActorCritic | Actor, env: Any, *, frozen: FrozenEncoder | N
         greedy: argmax actions; False samples from the policy.
         starts: explicit (task_index, cell) starts.
         progress: called with (done, total) after each episode.
+        threads: torch threads while evaluating (restored after; None leaves them).
     """
     if isinstance(policy, ActorCritic):
         was_training = policy.training
@@ -124,10 +126,11 @@ def evaluate(policy: ActorCritic | Actor, env: Any, *, frozen: FrozenEncoder | N
         was_training, actor = False, policy
     starts = starts if starts is not None else eval_starts(env, episodes_per_task, seed)
     records = []
-    for i, (ti, cell) in enumerate(starts):
-        records.append(run_episode(actor, env, ti, cell))
-        if progress is not None:
-            progress(i + 1, len(starts))
+    with torch_threads(threads):
+        for i, (ti, cell) in enumerate(starts):
+            records.append(run_episode(actor, env, ti, cell))
+            if progress is not None:
+                progress(i + 1, len(starts))
     if isinstance(policy, ActorCritic) and was_training:
         policy.train()
     n = max(len(records), 1)

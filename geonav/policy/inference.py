@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from geonav.errors import CheckpointError
-from geonav.policy.agent import Agent, view_input
+from geonav.policy.agent import Agent, torch_threads, view_input
 from geonav.policy.checkpoint import load_checkpoint
 
 
@@ -32,8 +32,9 @@ class PolicyRunner:
             ``action_meanings``, ``algorithm``, ``episodes``, ...).
     """
 
-    def __init__(self, agent: Agent, meta: dict[str, Any]) -> None:
+    def __init__(self, agent: Agent, meta: dict[str, Any], threads: int | None = 1) -> None:
         self.agent = agent
+        self.threads = threads
         self.meta = meta
         self.obs_size_px = int(meta["obs_size_px"])
         self._target_image: np.ndarray | None = None
@@ -41,11 +42,19 @@ class PolicyRunner:
 
     @classmethod
     def from_checkpoint(cls, path: str | os.PathLike[str], *, greedy: bool = True,
-                        seed: int = 0) -> PolicyRunner:
-        """Load a checkpoint (``weights_only``); raises :class:`CheckpointError` if unusable."""
+                        seed: int = 0, threads: int | None = 1) -> PolicyRunner:
+        """Load a checkpoint (``weights_only``); raises :class:`CheckpointError` if unusable.
+
+        Args:
+            path: the checkpoint.
+            greedy: argmax actions (default) or samples.
+            seed: seed of sampled actions.
+            threads: torch threads used inside :meth:`act` (restored after each call).
+        """
         ckpt = load_checkpoint(path)
         model = ckpt.build_model()
-        return cls(Agent(model, ckpt.build_encoder(), greedy=greedy, seed=seed), ckpt.meta)
+        return cls(Agent(model, ckpt.build_encoder(), greedy=greedy, seed=seed), ckpt.meta,
+                   threads)
 
     @property
     def action_meanings(self) -> list[str]:
@@ -69,6 +78,10 @@ class PolicyRunner:
         """The next action (0 forward/north, 1 right/east, 2 left/west, 3 backward/south)."""
         image = self._check("current", image)
         target = self._check("target", target)
+        with torch_threads(self.threads):
+            return self._act(image, target, greedy)
+
+    def _act(self, image: np.ndarray, target: np.ndarray, greedy: bool | None) -> int:
         if self._target is None or self._target_image is None or \
                 not np.array_equal(target, self._target_image):
             self._target_image = target.copy()

@@ -1,0 +1,73 @@
+"""Smoke tests of ``geonav train`` / ``geonav eval`` through geonav.policy.cli."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import pytest
+
+from geonav.policy import cli
+from geonav.testing import textured_scene, tiny_taskset
+
+
+@pytest.fixture(scope="module")
+def scene_files(tmp_path_factory):
+    root = tmp_path_factory.mktemp("data")
+    scene = textured_scene(size_m=300.0)
+    scene.save(root / "scene")
+    tiny_taskset(scene, max_steps=10).save(root / "tasks.json")
+    return root / "scene", root / "tasks.json"
+
+
+def _parse(argv):
+    parser = argparse.ArgumentParser()
+    cli.add_parser(parser.add_subparsers(dest="command", required=True))
+    return parser.parse_args(argv)
+
+
+def test_train_resume_and_eval(scene_files, tmp_path, capsys):
+    scene, tasks = scene_files
+    run = tmp_path / "run"
+    base = ["train", "--algo", "a3c", "--scene", str(scene), "--tasks", str(tasks),
+            "--altitude", "75", "--workers", "0", "--out", str(run), "--obs-size", "32",
+            "--encoder", "random", "--no-progress"]
+    args = _parse(base + ["--episodes", "3", "--seed", "1"])
+    assert args.func(args) == 0
+    config = json.loads((run / "config.json").read_text())
+    assert config["a3c"]["episodes"] == 3 and config["net"]["encoder"] == "random"
+    assert config["env"]["obs_size_px"] == 32
+    for name in ("metrics.csv", "learning_curve.png", "checkpoints/final.pt",
+                 "checkpoints/latest.pt"):
+        assert (run / name).is_file(), name
+
+    args = _parse(base + ["--episodes", "5", "--resume", str(run / "checkpoints/latest.pt")])
+    assert args.func(args) == 0
+    assert len((run / "metrics.csv").read_text().splitlines()) == 1 + 5
+
+    out = tmp_path / "eval.json"
+    args = _parse(["eval", str(run / "checkpoints/final.pt"), "--scene", str(scene),
+                   "--tasks", str(tasks), "--episodes", "4", "--greedy", "--json", str(out),
+                   "--no-progress"])
+    capsys.readouterr()
+    assert args.func(args) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["mode"] == "greedy" and summary["episodes"] == 4
+    assert 0.0 <= summary["success_rate"] <= 1.0
+    assert len(json.loads(out.read_text())["per_episode"]) == 4
+
+
+def test_bad_input_is_one_clear_error(scene_files, tmp_path, capsys):
+    scene, tasks = scene_files
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a checkpoint")
+    code = cli.main(["eval", str(bad), "--scene", str(scene), "--tasks", str(tasks)])
+    assert code == 2 and "corrupt" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        _parse(["train", "--scene", "s", "--tasks", "t", "--out", "o", "--encoder", "vgg"])
+    toml = tmp_path / "c.toml"
+    toml.write_text("[a3c]\nlearning_rate = 0.1\n")
+    code = cli.main(["train", "--scene", str(scene), "--tasks", str(tasks), "--out",
+                     str(tmp_path / "r"), "--config", str(toml)])
+    assert code == 2 and "learning_rate" in capsys.readouterr().err
+    assert not (tmp_path / "r").exists()
