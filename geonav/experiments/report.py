@@ -147,7 +147,7 @@ def _comparison(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
             cell += f" (incl. earlier stages: {_fmt_conv(conv_total)})"
         lines.append(
             f"| {m} | {cell} | {conv['censored']}/{conv['n']} | "
-            f"{'n/a' if wall is None else f'{wall:.0f} s'} | "
+            f"{'n/a' if wall is None else f'{wall:.1f} s'} | "
             f"{'n/a' if sr is None else f'{sr:.2f}'} | {'n/a' if spl is None else f'{spl:.2f}'} | "
             f"{'n/a' if ratio is None else f'{ratio:.2f}'} | "
             f"{'n/a' if auc is None else f'{auc:.2f}'} |")

@@ -1,0 +1,158 @@
+"""Execute one experiment unit: a training stage for one seed, then its evaluation.
+
+The payload (built by the runner) names the mode ("train", "meta-train",
+"curriculum"), the algorithm, the scene and task set, the episode budget, the
+seed, an optional ``init_checkpoint`` to start from (weights only: a
+fine-tune starts its own episode count and optimiser) and the unit folder.
+A unit folder that already holds ``checkpoints/latest.pt`` is resumed from
+it, so a killed experiment loses at most one checkpoint interval.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from geonav.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+#: mode -> algo -> function(payload, env_factory, callbacks, resume) -> (model, episodes, ckpt)
+TRAINERS: dict[tuple[str, str], Callable[..., Any]] = {}
+
+
+def trainer(mode: str, *algos: str) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
+    """Register a stage trainer for (mode, algo) pairs."""
+
+    def deco(fn: Callable[..., Any]) -> Callable[..., Any]:
+        for algo in algos:
+            TRAINERS[(mode, algo)] = fn
+        return fn
+
+    return deco
+
+
+class ProgressFile:
+    """A trainer callback that keeps ``progress.json`` up to date (read by the runner)."""
+
+    def __init__(self, path: Path, every_s: float = 1.0) -> None:
+        self.path = path
+        self.every_s = every_s
+        self._last = 0.0
+
+    def on_train_start(self, info: dict[str, Any]) -> None:
+        self._write(int(info.get("start_episode", 0)))
+
+    def on_episode(self, record: dict[str, Any]) -> None:
+        now = time.monotonic()
+        if now - self._last >= self.every_s:
+            self._last = now
+            self._write(int(record.get("episode", 0)))
+
+    def on_checkpoint(self, path: Any, episodes: int) -> None:
+        self._write(episodes)
+
+    def on_train_end(self, result: Any) -> None:
+        pass
+
+    def _write(self, episodes: int) -> None:
+        tmp = self.path.with_name(".progress.tmp")
+        tmp.write_text(json.dumps({"episodes": episodes, "time": time.time()}))
+        os.replace(tmp, self.path)
+
+
+def _load_init(model: Any, path: str | None, env: Any) -> None:
+    """Copy the weights of ``path`` into ``model`` after checking they fit ``env``."""
+    if not path:
+        return
+    from geonav.policy.checkpoint import check_compatible, load_checkpoint
+
+    ckpt = load_checkpoint(path)
+    check_compatible(ckpt.meta, env, path=ckpt.path)
+    model.load_state_dict(ckpt.model_state)
+
+
+@trainer("train", "a3c")
+def _train_a3c(p: dict[str, Any], env_factory: Any, callbacks: list[Any],
+               resume: str | None) -> tuple[Any, int, str]:
+    from geonav.policy.a3c import A3CTrainer
+    from geonav.policy.config import A3CConfig, NetConfig, from_dict
+
+    opts = dict(p["options"])
+    net_opts = {k: opts.pop(k) for k in list(opts) if k in NetConfig.__dataclass_fields__}
+    cfg = from_dict(A3CConfig, {**opts, "episodes": p["episodes"], "workers": p["workers"],
+                                "seed": p["seed"]})
+    net = from_dict(NetConfig, net_opts) if net_opts else None
+    if resume is None and p.get("init_checkpoint"):
+        from geonav.policy.checkpoint import load_checkpoint
+
+        net = load_checkpoint(p["init_checkpoint"]).net_config
+    t = A3CTrainer(env_factory, net, cfg, out_dir=p["out_dir"], resume=resume,
+                   callbacks=callbacks, tensorboard=False)
+    if resume is None:
+        _load_init(t.model, p.get("init_checkpoint"), t.env)
+    result = t.train()
+    return result.model, result.episodes, str(result.checkpoint)
+
+
+def execute_stage(p: dict[str, Any]) -> dict[str, Any]:
+    """Run a unit (see the module docstring); returns the result recorded in result.json."""
+    import torch
+
+    from geonav.policy.cli import EnvFactory
+
+    torch.set_num_threads(1)
+    key = (p["mode"], p["algo"])
+    if key not in TRAINERS:
+        known = sorted(f"{m}/{a}" for m, a in TRAINERS)
+        raise ConfigError(f"stage {p['stage']!r}: mode {p['mode']!r} with algo {p['algo']!r} "
+                          f"is not available; available: {known}")
+    out = Path(p["out_dir"])
+    latest = out / "checkpoints" / "latest.pt"
+    resume = str(latest) if latest.exists() else None
+    if resume is None and (out / "metrics.csv").exists():
+        # killed before its first checkpoint: start the unit again from scratch
+        for name in ("metrics.csv", "config.json", "progress.json"):
+            (out / name).unlink(missing_ok=True)
+    env_factory = EnvFactory(p["scene"], p["tasks"])
+    callbacks = [ProgressFile(out / "progress.json")]
+    model, episodes, checkpoint = TRAINERS[key](p, env_factory, callbacks, resume)
+    evaluation, trajectories = evaluate_unit(model, checkpoint, env_factory, p)
+    return dict(stage=p["stage"], seed=p["seed"], mode=p["mode"], algo=p["algo"],
+                episodes=int(episodes), checkpoint=checkpoint, metrics=str(out / "metrics.csv"),
+                scene=p["scene"], tasks=p["tasks"], eval=evaluation, trajectories=trajectories)
+
+
+def evaluate_unit(model: Any, checkpoint: str, env_factory: Any, p: dict[str, Any]
+                  ) -> tuple[dict[str, float], list[dict[str, Any]]]:
+    """Held-out evaluation (seeded starts, sampled actions, ALGORITHMS.md (f)) and two
+    greedy example trajectories per unit."""
+    from geonav.policy.agent import Agent
+    from geonav.policy.checkpoint import load_checkpoint
+    from geonav.policy.evaluation import evaluate
+
+    env = env_factory()
+    frozen = load_checkpoint(checkpoint).build_encoder()
+    n_tasks = len(env.unwrapped.tasks)
+    per_task = max(1, int(p.get("eval_starts", 100)) // n_tasks)
+    # held-out: a seed no training worker uses
+    res = evaluate(model, env, frozen=frozen, episodes_per_task=per_task,
+                   seed=10_000 + int(p["seed"]), greedy=False)
+    trajectories = []
+    agent = Agent(model.eval(), frozen, greedy=True, seed=0)
+    for i in range(min(2, n_tasks * 2)):
+        agent.reset()
+        obs, info = env.reset(seed=20_000 + i, options={"task": i % n_tasks})
+        cells, done = [list(info["cell"])], False
+        while not done:
+            obs, _, terminated, truncated, info = env.step(agent.act(obs, info))
+            cells.append(list(info["cell"]))
+            done = terminated or truncated
+        trajectories.append(dict(task_index=i % n_tasks, cells=cells,
+                                 success=bool(info["success"])))
+    return res.summary(), trajectories
