@@ -22,7 +22,6 @@ Usage: python bench/bench_ingest.py [--repeat 3] [--keep DIR]
 from __future__ import annotations
 
 import argparse
-import math
 import shutil
 import statistics
 import subprocess

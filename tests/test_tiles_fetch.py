@@ -20,11 +20,25 @@ from geonav.tiles.fetch import FetchIncomplete, fetch_tiles, tiles_in_bbox
 from geonav.tiles.xyz import SIDECAR, read_xyz
 
 try:
-    from test_tiles_support import encode, expected_px, find_marker, global_px_to_lonlat, \
-        marker_setup, tile_image, tile_server
+    from test_tiles_support import (
+        encode,
+        expected_px,
+        find_marker,
+        global_px_to_lonlat,
+        marker_setup,
+        tile_image,
+        tile_server,
+    )
 except ImportError:  # tests/ imported as a package
-    from tests.test_tiles_support import encode, expected_px, find_marker, \
-        global_px_to_lonlat, marker_setup, tile_image, tile_server
+    from tests.test_tiles_support import (
+        encode,
+        expected_px,
+        find_marker,
+        global_px_to_lonlat,
+        marker_setup,
+        tile_image,
+        tile_server,
+    )
 
 Z = 18
 LON, LAT = 4.4777, 51.9244

@@ -29,7 +29,6 @@ import json
 import logging
 import os
 import re
-import socket
 import tempfile
 import threading
 import time
@@ -45,8 +44,15 @@ from typing import Any
 
 from geonav import __version__
 from geonav.errors import TileError
-from geonav.tiles.xyz import MAX_ZOOM, SIDECAR, TILE_EXTS, check_tile, flip_y, sniff_format, \
-    tile_range_for_bbox
+from geonav.tiles.xyz import (
+    MAX_ZOOM,
+    SIDECAR,
+    TILE_EXTS,
+    check_tile,
+    flip_y,
+    sniff_format,
+    tile_range_for_bbox,
+)
 
 log = logging.getLogger(__name__)
 
@@ -310,7 +316,7 @@ def fetch_tiles(
             wait = min(max_backoff_s, backoff_s * 2 ** attempt)
             try:
                 status, body, headers = _get(url, user_agent=user_agent, timeout_s=timeout_s)
-            except (TimeoutError, socket.timeout) as err:
+            except TimeoutError as err:
                 detail = f"timeout ({err or timeout_s})"
             except urllib.error.URLError as err:
                 detail = f"connection error ({err.reason})"

@@ -18,8 +18,15 @@ from typing import Any
 
 from geonav.errors import TileError
 from geonav.scene import sha256_file
-from geonav.tiles.xyz import MAX_ZOOM, Progress, TileRef, build_mosaic, choose_zoom, flip_y, \
-    mosaic_info
+from geonav.tiles.xyz import (
+    MAX_ZOOM,
+    Progress,
+    TileRef,
+    build_mosaic,
+    choose_zoom,
+    flip_y,
+    mosaic_info,
+)
 
 log = logging.getLogger(__name__)
 
