@@ -24,7 +24,7 @@ def test_shapes_and_state():
     obs, tgt, st = _inputs(model)
     logits, values, (h, c, p) = model(obs, tgt, st)
     assert logits.shape == (3, 2, 4) and values.shape == (3, 2)
-    assert h.shape == (2, 256) and c.shape == (2, 256)
+    assert h.shape == (2, 128) and c.shape == (2, 128)
     assert torch.allclose(p, torch.softmax(logits[-1], -1))
     assert model.obs_embed.out_features == 64 and model.action_embed.out_features == 10
 

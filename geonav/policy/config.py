@@ -30,10 +30,11 @@ class NetConfig:
     """Size of the current-view and target-view embeddings."""
     action_embed_dim: int = 10
     """Size of the previous-action-probabilities embedding."""
-    hidden_size: int = 256
+    hidden_size: int = 128
     """Width of the fully connected layer after the concatenation."""
-    lstm_size: int = 256
-    """Hidden size of the LSTMCell (SAVN uses 512; the paper gives none)."""
+    lstm_size: int = 128
+    """Hidden size of the LSTMCell. The paper gives none; SAVN uses 512. 128 keeps a batch-1
+    step's LSTM weights in cache: 2x faster steps than 256 on a small CPU (bench/)."""
     n_actions: int = 4
     """Number of discrete actions (GeoNavEnv: forward, right, left, backward)."""
     random_encoder_seed: int = 0

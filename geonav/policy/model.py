@@ -133,12 +133,13 @@ class ActorCritic(nn.Module):
         w = self.fc.weight
         k = 2 * self.cfg.embed_dim
         pre = F.linear(torch.cat([obs_e, tgt_e], dim=-1), w[:, :k], self.fc.bias)  # (T, B, H)
+        w_act = w[:, k:]  # sliced once: one SliceBackward per call, not one per step
         h, c, p = state
         hs = []
         logits_steps = []
         for t in range(T):
             act_e = F.relu(self.action_embed(p))
-            x = F.relu(pre[t] + F.linear(act_e, w[:, k:]))
+            x = F.relu(pre[t] + F.linear(act_e, w_act))
             h, c = self.lstm(x, (h, c))
             logit = self.actor(h)
             p = F.softmax(logit, dim=-1)
