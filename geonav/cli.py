@@ -77,11 +77,12 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     warnings.simplefilter("default", GeonavWarning)
     warnings.filterwarnings("ignore", category=PendingDeprecationWarning)
-    if not getattr(args, "handler", None):
+    handler = getattr(args, "handler", None)
+    if handler is None:
         parser.print_help()
         return 0
     try:
-        return int(args.handler(args) or 0)
+        return int(handler(args) or 0)
     except GeonavError as err:
         print(f"geonav: error: {err}", file=sys.stderr)
         return 2

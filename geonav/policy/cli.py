@@ -98,7 +98,7 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument("--config", default=None, metavar="TOML",
                    help="TOML file with [net] and [a3c] tables; command-line options win")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(func=run_train)
+    p.set_defaults(handler=run_train)
 
     e = subparsers.add_parser("eval", help="evaluate a policy checkpoint",
                               description="Success rate, SPL, mean length and collisions from "
@@ -114,7 +114,7 @@ def add_parser(subparsers: Any) -> None:
     e.add_argument("--max-steps", type=int, default=None, help="episode cap override")
     e.add_argument("--json", default=None, metavar="FILE", help="also write the results as JSON")
     e.add_argument("--no-progress", action="store_true", help="no progress bar")
-    e.set_defaults(func=run_eval)
+    e.set_defaults(handler=run_eval)
 
 
 def resolve_train_configs(args: argparse.Namespace) -> tuple[Any, Any]:
