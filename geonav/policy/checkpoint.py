@@ -4,7 +4,8 @@ A checkpoint is ``torch.save`` of a plain dict::
 
     {"format": "geonav-policy", "format_version": 1,
      "model": state_dict (tensors), "optimizer": Adam state_dict or None,
-     "rng": RNG states for an exact resume or None, "meta": JSON-able dict}
+     "rng": RNG states for an exact resume or None, "meta": JSON-able dict,
+     "extra": name -> state_dict of auxiliary modules (SAVN's learned loss) or None}
 
 ``meta`` holds the architecture (``net``), the encoder, the observation size,
 field of view, action meanings, the altitude and lattice step it was trained
@@ -48,6 +49,8 @@ class Checkpoint:
     model_state: dict[str, torch.Tensor]
     optimizer_state: dict[str, Any] | None
     rng: dict[str, Any] | None
+    extra: dict[str, dict[str, torch.Tensor]] | None = None
+    """Auxiliary modules' state_dicts by name (e.g. SAVN's ``"interaction_loss"``)."""
 
     @property
     def net_config(self) -> NetConfig:
@@ -132,14 +135,22 @@ def make_meta(net_cfg: NetConfig, encoder: FrozenEncoder | None, env: Any, *, al
 
 def save_checkpoint(path: str | os.PathLike[str], model_state: dict[str, torch.Tensor],
                     meta: dict[str, Any], optimizer_state: dict[str, Any] | None = None,
-                    rng: dict[str, Any] | None = None) -> Path:
-    """Write a checkpoint atomically (temp file in the same folder + ``os.replace``)."""
+                    rng: dict[str, Any] | None = None,
+                    extra: dict[str, dict[str, torch.Tensor]] | None = None) -> Path:
+    """Write a checkpoint atomically (temp file in the same folder + ``os.replace``).
+
+    ``extra`` holds auxiliary modules' state_dicts (name -> state_dict), kept beside the
+    policy so that ``model`` always loads into a plain :class:`ActorCritic`.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     meta = json.loads(json.dumps(meta))  # plain JSON types only; fails before any write
     blob = {"format": FORMAT, "format_version": FORMAT_VERSION,
             "model": {k: v.detach().clone() for k, v in model_state.items()},
             "optimizer": optimizer_state, "rng": rng, "meta": meta}
+    if extra:
+        blob["extra"] = {name: {k: v.detach().clone() for k, v in sd.items()}
+                         for name, sd in extra.items()}
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
@@ -184,7 +195,8 @@ def load_checkpoint(path: str | os.PathLike[str]) -> Checkpoint:
     if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor)
                                               for v in state.values()):
         raise CheckpointError(f"checkpoint {path} has no weights dict")
-    ckpt = Checkpoint(path, meta, state, blob.get("optimizer"), blob.get("rng"))
+    ckpt = Checkpoint(path, meta, state, blob.get("optimizer"), blob.get("rng"),
+                      blob.get("extra"))
     ckpt.net_config  # noqa: B018 - validates the architecture record
     return ckpt
 
