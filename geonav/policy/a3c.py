@@ -112,11 +112,36 @@ class A3CWorker:
         self.rng = np.random.default_rng(seed)
         self._env_seeded = False
         self.env_steps = 0
+        self.reset_options: dict[str, Any] | None = None
+        """Options of the next ``env.reset`` (meta-training picks the task with them)."""
+        self.on_gradients: Callable[[list[torch.Tensor]], None] | None = None
+        """Called with the (clipped) gradients of every update before the optimiser steps
+        (meta-training sums them into the task gradient)."""
         self._params = list(model.parameters())
         self._shared_params = list(shared_model.parameters()) if shared_model is not None \
             else None
         if rng_state is not None:
             self.set_rng_state(rng_state)
+
+    @classmethod
+    def create(cls, rank: int, shared_model: ActorCritic, optimizer: torch.optim.Optimizer,
+               env: Any, net_cfg: NetConfig, cfg: A3CConfig, frozen: FrozenEncoder | None,
+               seed: int, extra: dict[str, Any] | None = None) -> A3CWorker:
+        """The worker of a worker process: a local copy of the shared network.
+
+        ``extra`` carries what subclasses share beyond the policy (see
+        :meth:`A3CTrainer.worker_extra`).
+        """
+        local = ActorCritic(net_cfg)
+        local.load_state_dict(shared_model.state_dict())
+        return cls(rank, local, optimizer, env, cfg, frozen, seed, shared_model=shared_model)
+
+    def reset_env(self) -> tuple[Any, dict[str, Any]]:
+        """``env.reset``, seeded on the first call, with :attr:`reset_options`."""
+        if not self._env_seeded:
+            self._env_seeded = True
+            return self.env.reset(seed=self.seed, options=self.reset_options)
+        return self.env.reset(options=self.reset_options)
 
     # -- RNG state (exact resume in single-process mode) ----------------------------------
     def rng_state(self) -> dict[str, Any]:
@@ -143,22 +168,26 @@ class A3CWorker:
             p.grad = None
         loss = rollout_loss(self.model, rollout, bootstrap, self.cfg)
         loss.total.backward()
-        nn.utils.clip_grad_norm_(self._params, self.cfg.max_grad_norm)
+        self.apply_gradients()
+        return loss
+
+    def apply_gradients(self) -> None:
+        """Clip the local ``.grad`` to ``max_grad_norm``, hand it to the shared parameters
+        (through :attr:`on_gradients` first) and step the shared optimiser."""
+        if self.cfg.max_grad_norm:
+            nn.utils.clip_grad_norm_(self._params, self.cfg.max_grad_norm)
+        if self.on_gradients is not None:
+            self.on_gradients([p.grad for p in self._params])
         if self._shared_params is not None:
             for p, sp in zip(self._params, self._shared_params):
                 sp.grad = p.grad
         self.optimizer.step()
-        return loss
 
     def run_episode(self, episode: int) -> dict[str, Any]:
         """Play one training episode, updating every ``t_max`` steps; returns its record."""
         t0 = time.perf_counter()
         cfg = self.cfg
-        if not self._env_seeded:
-            obs, info = self.env.reset(seed=self.seed)
-            self._env_seeded = True
-        else:
-            obs, info = self.env.reset()
+        obs, info = self.reset_env()
         shortest = int(info["shortest_path"])
         state = self.model.initial_state()
         ep_return, length, collisions = 0.0, 0, 0
@@ -209,16 +238,16 @@ class A3CWorker:
 
 def _worker_process(rank: int, shared_model: ActorCritic, optimizer: SharedAdam,
                     env_factory: EnvFactory, net_cfg: NetConfig, cfg: A3CConfig, seed: int,
-                    counter: Any, lock: Any, results: Any, stop: Any, ready: Any) -> None:
+                    counter: Any, lock: Any, results: Any, stop: Any, ready: Any,
+                    worker_cls: type[A3CWorker] = A3CWorker,
+                    extra: dict[str, Any] | None = None) -> None:
     """Process target: claim episode numbers from the global counter until the budget is spent."""
     try:
         torch.set_num_threads(cfg.torch_threads)
         torch.manual_seed(seed)
         env = env_factory()
-        local = ActorCritic(net_cfg)
-        local.load_state_dict(shared_model.state_dict())
-        worker = A3CWorker(rank, local, optimizer, env, cfg, build_frozen_encoder(net_cfg),
-                           seed, shared_model=shared_model)
+        worker = worker_cls.create(rank, shared_model, optimizer, env, net_cfg, cfg,
+                                   build_frozen_encoder(net_cfg), seed, extra)
         ready.wait(timeout=300)  # start together, so every worker takes part from episode 1
         while not stop.is_set():
             with lock:
@@ -272,6 +301,9 @@ class A3CTrainer:
     """
 
     algorithm = "a3c"
+    config_key = "a3c"
+    """Key of the algorithm's config in config.json and the checkpoint meta."""
+    worker_cls: type[A3CWorker] = A3CWorker
 
     def __init__(self, env_factory: EnvFactory, net_cfg: NetConfig | None = None,
                  cfg: A3CConfig = A3CConfig(), *, out_dir: str | os.PathLike[str] | None = None,
@@ -311,23 +343,48 @@ class A3CTrainer:
         self.frozen = build_frozen_encoder(self.net_cfg)
         torch.manual_seed(cfg.seed)
         self.model = ActorCritic(self.net_cfg)
-        self.optimizer = SharedAdam(self.model.parameters(), lr=cfg.lr, betas=cfg.adam_betas,
+        self.aux: dict[str, nn.Module] = self.build_aux()
+        params = list(self.model.parameters())
+        for m in self.aux.values():
+            params += list(m.parameters())
+        self.optimizer = SharedAdam(params, lr=cfg.lr, betas=cfg.adam_betas,
                                     eps=cfg.adam_eps, amsgrad=cfg.amsgrad, fused=cfg.fused)
         self.start_episode = 0
         self.rng_state: dict[str, Any] | None = None
         if self.ckpt is not None:
             self.model.load_state_dict(self.ckpt.model_state)
+            for name, m in self.aux.items():
+                if not self.ckpt.extra or name not in self.ckpt.extra:
+                    raise ConfigError(f"{self.ckpt.path} holds no {name!r} state; it was not "
+                                      f"written by a {self.algorithm} run")
+                m.load_state_dict(self.ckpt.extra[name])
             if self.ckpt.optimizer_state is not None:
                 self.optimizer.load_state_dict(self.ckpt.optimizer_state)
             self.start_episode = self.ckpt.episodes
             self.rng_state = self.ckpt.rng
         self.model.share_memory()
+        for m in self.aux.values():
+            m.share_memory()
         self.episodes_done = self.start_episode
+
+    # -- hooks for the algorithms built on this trainer (SAVN, ISAR) ----------------------
+    def build_aux(self) -> dict[str, nn.Module]:
+        """Shared modules trained beside the policy (name -> module); A3C has none."""
+        return {}
+
+    def worker_extra(self) -> dict[str, Any] | None:
+        """What :meth:`A3CWorker.create` receives besides the policy in each process."""
+        return {"aux": self.aux} if self.aux else None
+
+    def inline_worker(self) -> A3CWorker:
+        """The worker of the single-process mode (acts on the shared model itself)."""
+        return self.worker_cls(0, self.model, self.optimizer, self.env, self.cfg, self.frozen,
+                               self.cfg.seed, rng_state=self.rng_state)
 
     # -- run folder -------------------------------------------------------------------------
     def resolved_config(self) -> dict[str, Any]:
         return {"algorithm": self.algorithm, "net": to_dict(self.net_cfg),
-                "a3c": to_dict(self.cfg), "env": make_meta(self.net_cfg, self.frozen, self.env,
+                self.config_key: to_dict(self.cfg), "env": make_meta(self.net_cfg, self.frozen, self.env,
                                                            algorithm=self.algorithm,
                                                            episodes=self.start_episode),
                 "resume": str(self.ckpt.path) if self.ckpt is not None else None,
@@ -351,13 +408,14 @@ class A3CTrainer:
 
     def checkpoint_meta(self, episodes: int) -> dict[str, Any]:
         return make_meta(self.net_cfg, self.frozen, self.env, algorithm=self.algorithm,
-                         episodes=episodes, config={"a3c": to_dict(self.cfg)})
+                         episodes=episodes, config={self.config_key: to_dict(self.cfg)})
 
     def save(self, path: str | os.PathLike[str], episodes: int,
              rng: dict[str, Any] | None = None) -> Path:
         """Write a checkpoint of the shared model and optimiser."""
         return save_checkpoint(path, self.model.state_dict(), self.checkpoint_meta(episodes),
-                               self.optimizer.state_dict(), rng)
+                               self.optimizer.state_dict(), rng,
+                               {name: m.state_dict() for name, m in self.aux.items()} or None)
 
     # -- training ---------------------------------------------------------------------------
     def train(self) -> TrainResult:
@@ -422,8 +480,7 @@ class A3CTrainer:
         threads = torch.get_num_threads()
         torch.set_num_threads(self.cfg.torch_threads)
         try:
-            worker = A3CWorker(0, self.model, self.optimizer, self.env, self.cfg, self.frozen,
-                               self.cfg.seed, rng_state=self.rng_state)
+            worker = self.inline_worker()
             while self.episodes_done < self.cfg.episodes:
                 rec = worker.run_episode(self.episodes_done + 1)
                 if not self._on_record(rec, cbs, result, worker.rng_state):
@@ -443,10 +500,10 @@ class A3CTrainer:
         for rank in range(self.cfg.workers):
             # Distinct streams per worker, and new ones after a resume.
             seed = self.cfg.seed + 1000 * rank + 7919 * self.start_episode
-            p = ctx.Process(target=_worker_process, name=f"a3c-worker-{rank}",
+            p = ctx.Process(target=_worker_process, name=f"{self.algorithm}-worker-{rank}",
                             args=(rank, self.model, self.optimizer, self.env_factory,
                                   self.net_cfg, self.cfg, seed, counter, lock, results, stop,
-                                  ready),
+                                  ready, self.worker_cls, self.worker_extra()),
                             daemon=True)
             p.start()
             procs.append(p)
