@@ -37,7 +37,7 @@ def test_deterministic_mode_is_reproducible():
     a = train_a3c(factory, tiny_net(), cfg)
     b = train_a3c(factory, tiny_net(), cfg)
     assert [r["return"] for r in a.records] == [r["return"] for r in b.records]
-    for pa, pb in zip(a.model.parameters(), b.model.parameters()):
+    for pa, pb in zip(a.model.parameters(), b.model.parameters(), strict=True):
         assert torch.equal(pa, pb)
 
 
@@ -51,7 +51,7 @@ def test_two_workers_train_the_shared_model(tmp_path):
     assert res.episodes == 12
     assert {r["worker"] for r in res.records} == {0, 1}
     assert sorted(r["episode"] for r in res.records) == list(range(1, 13))
-    changed = [not torch.equal(a, b) for a, b in zip(before, res.model.parameters())]
+    changed = [not torch.equal(a, b) for a, b in zip(before, res.model.parameters(), strict=True)]
     assert all(changed)
     step = next(iter(trainer.optimizer.state.values()))["step"]
     assert step.item() >= 12  # at least one shared Adam step per episode

@@ -27,7 +27,7 @@ def test_round_trip_with_optimizer_state(trained):
     ck = load_checkpoint(out / "checkpoints" / "final.pt")
     assert ck.episodes == 4
     model = ck.build_model()
-    for (k, a), b in zip(res.model.state_dict().items(), model.state_dict().values()):
+    for (k, a), b in zip(res.model.state_dict().items(), model.state_dict().values(), strict=True):
         assert torch.equal(a, b), k
     trainer = A3CTrainer(tiny_env_factory(), None, A3CConfig(episodes=5, workers=0),
                          resume=out / "checkpoints" / "final.pt")
@@ -124,7 +124,7 @@ def test_resume_continues_the_episode_count_exactly(tmp_path):
     assert [r["episode"] for r in resumed.records] == [7, 8, 9, 10]
     # Weights, Adam state and RNG state were all restored: same result as one straight run.
     assert [r["return"] for r in resumed.records] == [r["return"] for r in straight.records[6:]]
-    for a, b in zip(straight.model.parameters(), resumed.model.parameters()):
+    for a, b in zip(straight.model.parameters(), resumed.model.parameters(), strict=True):
         assert torch.allclose(a, b, atol=1e-7)
     rows = (run / "metrics.csv").read_text().splitlines()
     assert len(rows) == 1 + 10  # one header, appended rows

@@ -33,7 +33,7 @@ def test_train_resume_and_eval(scene_files, tmp_path, capsys):
             "--altitude", "75", "--workers", "0", "--out", str(run), "--obs-size", "32",
             "--encoder", "random", "--no-progress"]
     args = _parse(base + ["--episodes", "3", "--seed", "1"])
-    assert args.func(args) == 0
+    assert args.handler(args) == 0
     config = json.loads((run / "config.json").read_text())
     assert config["a3c"]["episodes"] == 3 and config["net"]["encoder"] == "random"
     assert config["env"]["obs_size_px"] == 32
@@ -42,7 +42,7 @@ def test_train_resume_and_eval(scene_files, tmp_path, capsys):
         assert (run / name).is_file(), name
 
     args = _parse(base + ["--episodes", "5", "--resume", str(run / "checkpoints/latest.pt")])
-    assert args.func(args) == 0
+    assert args.handler(args) == 0
     assert len((run / "metrics.csv").read_text().splitlines()) == 1 + 5
 
     out = tmp_path / "eval.json"
@@ -50,7 +50,7 @@ def test_train_resume_and_eval(scene_files, tmp_path, capsys):
                    "--tasks", str(tasks), "--episodes", "4", "--greedy", "--json", str(out),
                    "--no-progress"])
     capsys.readouterr()
-    assert args.func(args) == 0
+    assert args.handler(args) == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert summary["mode"] == "greedy" and summary["episodes"] == 4
     assert 0.0 <= summary["success_rate"] <= 1.0

@@ -31,7 +31,7 @@ def test_runner_acts_like_greedy_evaluation(run):
     starts = eval_starts(env, 6, seed=2)
     res = evaluate(ck.build_model(), env, frozen=ck.build_encoder(), starts=starts, greedy=True)
     runner = PolicyRunner.from_checkpoint(path)
-    for rec, (ti, cell) in zip(res.episodes, starts):
+    for rec, (ti, cell) in zip(res.episodes, starts, strict=True):
         runner.reset()
         obs, info = env.reset(options={"task": ti, "start_cell": cell})
         actions = []

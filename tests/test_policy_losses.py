@@ -91,7 +91,7 @@ def test_batched_recompute_equals_per_step_graph(encoder, bootstrap):
     fast = rollout_loss(model, ro, bootstrap, A3CConfig())
     g_fast = torch.autograd.grad(fast.total, list(model.parameters()))
     assert fast.total.item() == pytest.approx(slow.total.item(), rel=1e-5, abs=1e-5)
-    for (name, _), a, b in zip(model.named_parameters(), g_slow, g_fast):
+    for (name, _), a, b in zip(model.named_parameters(), g_slow, g_fast, strict=True):
         assert torch.allclose(a, b, rtol=1e-4, atol=1e-5), name
 
     # ...and through functional_call with a parameter dict.

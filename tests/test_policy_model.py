@@ -51,7 +51,7 @@ def test_steps_one_by_one_equal_one_sequence_call():
         lg, v, state = model(obs[t:t + 1], tgt, state)
         assert torch.allclose(lg[0], seq_logits[t], atol=1e-6)
         assert torch.allclose(v[0], seq_values[t], atol=1e-6)
-    assert all(torch.allclose(a, b, atol=1e-6) for a, b in zip(state, seq_state))
+    assert all(torch.allclose(a, b, atol=1e-6) for a, b in zip(state, seq_state, strict=True))
 
 
 @pytest.mark.parametrize("encoder", ["cnn", "random"])
@@ -72,7 +72,7 @@ def test_functional_call_agrees_with_module(encoder):
     theta = {k: v.requires_grad_() for k, v in params.items()}
     loss = functional_call(model, theta, (obs, tgt, st), strict=True)[1].pow(2).sum()
     grads = torch.autograd.grad(loss, list(theta.values()), create_graph=True)
-    adapted = {k: v - 0.1 * g for (k, v), g in zip(theta.items(), grads)}
+    adapted = {k: v - 0.1 * g for (k, v), g in zip(theta.items(), grads, strict=True)}
     out_a = functional_call(model, adapted, (obs, tgt, st), strict=True)
     assert not torch.allclose(out_a[1], out_m[1])
     meta_grad = torch.autograd.grad(out_a[1].sum(), theta["critic.weight"])[0]

@@ -5,7 +5,7 @@ Importing this package is cheap; the submodules import torch. Main entry points:
 * :class:`geonav.policy.model.ActorCritic` and :class:`geonav.policy.config.NetConfig`;
 * :func:`geonav.policy.losses.actor_critic_loss` (the segment loss L_AC);
 * :class:`geonav.policy.a3c.A3CTrainer` / :func:`geonav.policy.a3c.train_a3c`;
-* :func:`geonav.policy.checkpoint.load_checkpoint`, :func:`~geonav.policy.checkpoint.save_checkpoint`;
+* :func:`geonav.policy.checkpoint.load_checkpoint` and ``save_checkpoint``;
 * :func:`geonav.policy.evaluation.evaluate`;
 * :class:`geonav.policy.inference.PolicyRunner` (deployment).
 """

@@ -36,10 +36,8 @@ from torch import nn
 
 from geonav.errors import ConfigError, GeonavError
 from geonav.policy.agent import choose_action, obs_inputs
-from geonav.policy.callbacks import Callback, CSVMetrics, plot_learning_curve, \
-    tensorboard_callback
-from geonav.policy.checkpoint import check_compatible, load_checkpoint, make_meta, \
-    save_checkpoint
+from geonav.policy.callbacks import Callback, CSVMetrics, plot_learning_curve, tensorboard_callback
+from geonav.policy.checkpoint import check_compatible, load_checkpoint, make_meta, save_checkpoint
 from geonav.policy.config import A3CConfig, NetConfig, to_dict
 from geonav.policy.encoders import FrozenEncoder, build_frozen_encoder
 from geonav.policy.evaluation import spl
@@ -117,9 +115,9 @@ class A3CWorker:
         self.on_gradients: Callable[[list[torch.Tensor]], None] | None = None
         """Called with the (clipped) gradients of every update before the optimiser steps
         (meta-training sums them into the task gradient)."""
-        self._params = list(model.parameters())
-        self._shared_params = list(shared_model.parameters()) if shared_model is not None \
-            else None
+        self._params: list[torch.Tensor] = list(model.parameters())
+        self._shared_params: list[torch.Tensor] | None = list(shared_model.parameters()) \
+            if shared_model is not None else None
         if rng_state is not None:
             self.set_rng_state(rng_state)
 
@@ -177,9 +175,9 @@ class A3CWorker:
         if self.cfg.max_grad_norm:
             nn.utils.clip_grad_norm_(self._params, self.cfg.max_grad_norm)
         if self.on_gradients is not None:
-            self.on_gradients([p.grad for p in self._params])
+            self.on_gradients([p.grad for p in self._params])  # type: ignore[misc]
         if self._shared_params is not None:
-            for p, sp in zip(self._params, self._shared_params):
+            for p, sp in zip(self._params, self._shared_params, strict=True):
                 sp.grad = p.grad
         self.optimizer.step()
 
@@ -306,7 +304,7 @@ class A3CTrainer:
     worker_cls: type[A3CWorker] = A3CWorker
 
     def __init__(self, env_factory: EnvFactory, net_cfg: NetConfig | None = None,
-                 cfg: A3CConfig = A3CConfig(), *, out_dir: str | os.PathLike[str] | None = None,
+                 cfg: A3CConfig | None = None, *, out_dir: str | os.PathLike[str] | None = None,
                  resume: str | os.PathLike[str] | None = None,
                  callbacks: Sequence[Callback] = (), mp_context: str | None = None,
                  keep_records: bool = True, tensorboard: bool = True) -> None:
@@ -315,6 +313,7 @@ class A3CTrainer:
                 and sys.platform.startswith("linux") else "spawn"
         if mp_context not in ("spawn", "fork", "forkserver"):
             raise ConfigError(f"mp_context must be spawn, fork or forkserver, not {mp_context!r}")
+        cfg = cfg if cfg is not None else A3CConfig()
         self.env_factory = env_factory
         self.cfg = cfg
         self.mp_context = mp_context
@@ -383,10 +382,10 @@ class A3CTrainer:
 
     # -- run folder -------------------------------------------------------------------------
     def resolved_config(self) -> dict[str, Any]:
+        env = make_meta(self.net_cfg, self.frozen, self.env, algorithm=self.algorithm,
+                        episodes=self.start_episode)
         return {"algorithm": self.algorithm, "net": to_dict(self.net_cfg),
-                self.config_key: to_dict(self.cfg), "env": make_meta(self.net_cfg, self.frozen, self.env,
-                                                           algorithm=self.algorithm,
-                                                           episodes=self.start_episode),
+                self.config_key: to_dict(self.cfg), "env": env,
                 "resume": str(self.ckpt.path) if self.ckpt is not None else None,
                 "start_episode": self.start_episode, "mp_context": self.mp_context}
 
@@ -490,7 +489,7 @@ class A3CTrainer:
             torch.set_num_threads(threads)
 
     def _train_workers(self, cbs: list[Callback], result: TrainResult) -> None:
-        ctx = torch.multiprocessing.get_context(self.mp_context)
+        ctx: Any = torch.multiprocessing.get_context(self.mp_context)
         counter = ctx.Value("l", self.episodes_done)
         lock = ctx.Lock()
         results = ctx.Queue()
@@ -541,6 +540,6 @@ class A3CTrainer:
 
 
 def train_a3c(env_factory: EnvFactory, net_cfg: NetConfig | None = None,
-              cfg: A3CConfig = A3CConfig(), **kwargs: Any) -> TrainResult:
+              cfg: A3CConfig | None = None, **kwargs: Any) -> TrainResult:
     """Build an :class:`A3CTrainer` and run it (see its arguments)."""
     return A3CTrainer(env_factory, net_cfg, cfg, **kwargs).train()

@@ -1,7 +1,7 @@
 """``geonav train`` and ``geonav eval``: thin argparse front ends over the policy library.
 
 Wire into ``geonav/cli.py`` with ``geonav.policy.cli.add_parser(subparsers)``; each
-subparser sets ``func`` to its handler (``run_train`` / ``run_eval``), which returns
+subparser sets ``handler`` to its function (``run_train`` / ``run_eval``), which returns
 an exit status and raises :class:`geonav.errors.GeonavError` on bad input. This
 module imports torch only inside the handlers, so ``geonav --help`` stays fast.
 """
@@ -149,9 +149,9 @@ class _TqdmProgress:
     """Turns trainer callbacks into a tqdm bar (success-rate moving average in the postfix)."""
 
     def __init__(self, disable: bool) -> None:
-        from geonav.policy.callbacks import Callback
+        from tqdm import tqdm  # type: ignore[import-untyped]
 
-        from tqdm import tqdm
+        from geonav.policy.callbacks import Callback
 
         class _CB(Callback):
             def on_train_start(cb, info: dict[str, Any]) -> None:
@@ -234,7 +234,7 @@ def main(argv: list[str] | None = None) -> int:
     add_parser(parser.add_subparsers(dest="command", required=True))
     args = parser.parse_args(argv)
     try:
-        return int(args.func(args))
+        return int(args.handler(args))
     except GeonavError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

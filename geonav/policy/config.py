@@ -141,7 +141,7 @@ def from_dict(cls: type, d: dict[str, Any]) -> Any:
         raise ConfigError(f"unknown {cls.__name__} option(s) {unknown}; known: {sorted(known)}")
     kwargs: dict[str, Any] = {}
     for k, v in d.items():
-        if k == "loss" and cls is A3CConfig:
+        if k == "loss" and isinstance(cls, type) and issubclass(cls, A3CConfig):
             v = from_dict(LossConfig, v)
         elif k == "adam_betas":
             v = tuple(v)
@@ -161,7 +161,7 @@ def field_help(cls: type) -> dict[str, str]:
         return {}
     out: dict[str, str] = {}
     body = tree.body[0].body  # type: ignore[attr-defined]
-    for node, nxt in zip(body, body[1:]):
+    for node, nxt in zip(body, body[1:], strict=False):
         if (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name)
                 and isinstance(nxt, ast.Expr) and isinstance(nxt.value, ast.Constant)
                 and isinstance(nxt.value.value, str)):

@@ -84,8 +84,11 @@ def resnet18_trunk(weights: str | None) -> tuple[nn.Module, int]:
         CheckpointError: the weights file is missing or does not fit ResNet18.
     """
     try:
-        import torchvision  # noqa: F401
-        from torchvision.models import ResNet18_Weights, resnet18
+        import torchvision  # type: ignore[import-not-found]  # noqa: F401
+        from torchvision.models import (  # type: ignore[import-not-found]
+            ResNet18_Weights,
+            resnet18,
+        )
     except Exception as err:  # ImportError, or a torchvision built for another torch
         raise MissingExtra("torchvision", "resnet", "the ResNet18 encoder") from err
     if weights is None:
@@ -107,6 +110,9 @@ def resnet18_trunk(weights: str | None) -> tuple[nn.Module, int]:
 
 class _ResNetInput(nn.Module):
     """uint8 (B, N, N, 3) -> ImageNet-normalised float (B, 3, S, S)."""
+
+    mean: torch.Tensor
+    std: torch.Tensor
 
     def __init__(self, size_px: int) -> None:
         super().__init__()
@@ -183,8 +189,8 @@ def build_frozen_encoder(cfg: NetConfig) -> FrozenEncoder | None:
     if cfg.encoder == "cnn":
         return None
     if cfg.encoder == "random":
-        net = random_cnn(cfg.obs_size_px, cfg.random_encoder_seed)
-        return FrozenEncoder(net, net.out_dim, {"kind": "random", "seed": cfg.random_encoder_seed})
+        cnn = random_cnn(cfg.obs_size_px, cfg.random_encoder_seed)
+        return FrozenEncoder(cnn, cnn.out_dim, {"kind": "random", "seed": cfg.random_encoder_seed})
     if cfg.encoder == "resnet18":
         trunk, dim = resnet18_trunk(cfg.encoder_weights)
         net = nn.Sequential(_ResNetInput(224), trunk)

@@ -74,7 +74,7 @@ def returns_and_advantages(rewards: Sequence[float] | torch.Tensor, values: torc
 
 def actor_critic_loss(logits: torch.Tensor, values: torch.Tensor, actions: Sequence[int] |
                       torch.Tensor, rewards: Sequence[float] | torch.Tensor, bootstrap: float,
-                      cfg: LossConfig = LossConfig()) -> LossTerms:
+                      cfg: LossConfig | None = None) -> LossTerms:
     """L_AC over one segment of one episode.
 
     Args:
@@ -84,11 +84,12 @@ def actor_critic_loss(logits: torch.Tensor, values: torch.Tensor, actions: Seque
         rewards: the rewards received, (T,).
         bootstrap: B, a float: 0 if the segment ended the episode, else the detached
             V(s_next) (see the module docstring and ``LossConfig.bootstrap_on_truncation``).
-        cfg: gamma, tau, beta, value_coef.
+        cfg: gamma, tau, beta, value_coef (default :class:`LossConfig`).
 
     Returns:
         :class:`LossTerms`; call ``.total.backward()`` (or ``autograd.grad``).
     """
+    cfg = cfg if cfg is not None else LossConfig()
     logits = logits.reshape(logits.shape[0], -1)
     values = values.reshape(-1)
     a = torch.as_tensor(actions, dtype=torch.long).reshape(-1)
