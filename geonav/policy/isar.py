@@ -1,0 +1,239 @@
+"""ISAR, Algorithm 1 of the paper as resolved in ALGORITHMS.md (c).
+
+Objects: the adaptive policy phi is global (the trainer's shared model, SharedAdam
+with lr beta = ``cfg.lr``); the interaction policy theta is a name -> tensor dict per
+episode. Per episode (one worker):
+
+1. phi_hat = the local leaf copy of the global phi (``sync``); theta = phi_hat; h = 0.
+2. For t = 1..T_max act with theta; at a segment end (t mod N = 0, or done):
+   append L_AC(theta; S) (+ lambda KL to the curriculum teacher) to the window;
+   if the window holds fewer than K losses and the episode goes on:
+   theta <- theta - alpha grad_theta L (create_graph = second_order);
+   otherwise: grad_phi_hat of the window's sum into the global phi's ``.grad``
+   (clip), Adam step, phi_hat <- the new phi, theta <- phi_hat, detach h and the
+   previous-action input, empty the window (a partial window is flushed at done).
+
+Gradient path (``cfg.gradient_path``): 'recompute' acts under no_grad on a plain copy
+of the network loaded with theta and recomputes each segment in one batched call from
+its start state, carrying the recomputed (graph) end state into the next segment of
+the window: the same numbers and the same graph as 'per-step', which keeps the graph
+of every acting forward.
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+from typing import Any
+
+import torch
+
+from geonav.policy.a3c import A3CTrainer, A3CWorker
+from geonav.policy.agent import choose_action, obs_inputs
+from geonav.policy.evaluation import spl
+from geonav.policy.functional import Segment, grads_of, load_values, segment_loss, sgd_step, \
+    teacher_kl
+from geonav.policy.losses import actor_critic_loss
+from geonav.policy.meta_config import ISARConfig
+from geonav.policy.model import detach_state
+
+
+class MetaWorkerMixin:
+    """Teacher (curriculum) and instrumentation plumbing shared by SAVN and ISAR workers."""
+
+    teacher: Any = None
+    teacher_spec: Any = None
+    events: list[tuple[Any, ...]] | None = None
+    """When a list, every inner ('inner', t) and adaptive/meta ('adapt', t, n) update is
+    appended (tests)."""
+
+    def attach(self, extra: dict[str, Any] | None) -> None:
+        spec = (extra or {}).get("teacher")
+        self.teacher_spec = spec
+        self.teacher = spec.build() if spec is not None else None
+
+    def lam(self, episode: int) -> float:
+        return self.teacher_spec.weight(episode) if self.teacher is not None else 0.0
+
+    def _event(self, *e: Any) -> None:
+        if self.events is not None:
+            self.events.append(e)
+
+
+class ISARWorker(MetaWorkerMixin, A3CWorker):
+    """One ISAR worker (see the module docstring)."""
+
+    cfg: ISARConfig
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.names = [n for n, _ in self.model.named_parameters()]
+        self.actor_net = copy.deepcopy(self.model).requires_grad_(False)
+        self.theta_log: list[dict[str, torch.Tensor]] | None = None
+        """When a list, theta's values right after each adaptive update (tests)."""
+
+    @classmethod
+    def create(cls, rank: int, shared_model: Any, optimizer: Any, env: Any, net_cfg: Any,
+               cfg: Any, frozen: Any, seed: int, extra: dict[str, Any] | None = None
+               ) -> A3CWorker:
+        w = super().create(rank, shared_model, optimizer, env, net_cfg, cfg, frozen, seed, extra)
+        w.attach(extra)  # type: ignore[attr-defined]
+        return w
+
+    def run_episode(self, episode: int) -> dict[str, Any]:
+        t0 = time.perf_counter()
+        cfg = self.cfg
+        per_step = cfg.gradient_path == "per-step"
+        obs, info = self.reset_env()
+        shortest = int(info["shortest_path"])
+        lam = self.lam(episode)
+        if self.teacher is not None:
+            self.teacher.reset(info)
+        view, target = obs_inputs(obs, info, self.frozen)
+        self.sync()
+        phi = self._params
+        theta = dict(zip(self.names, phi, strict=True))
+        state = self.model.initial_state()
+        gstate = state
+        window: list[torch.Tensor] = []
+        t = 0
+        ep_return, collisions = 0.0, 0
+        pl = vl = ent = 0.0
+        n_seg = n_inner = n_adapt = 0
+        terminated = truncated = False
+        while not (terminated or truncated):
+            if not per_step:
+                load_values(self.actor_net, theta)
+                with torch.no_grad():
+                    tfeat = self.actor_net.features(target[None])
+            seg = Segment(detach_state(state), target)
+            logits_steps, values_steps = [], []
+            for _ in range(cfg.n_steps):
+                if per_step:
+                    logits, v, state = torch.func.functional_call(
+                        self.model, theta, (view[None, None], target[None], state), strict=True)
+                    logits_steps.append(logits[0, 0])
+                    values_steps.append(v[0, 0])
+                    a = choose_action(logits[0, 0].detach(), False, self.rng)
+                else:
+                    with torch.no_grad():
+                        logits, _, state = self.actor_net(view[None, None], tfeat, state)
+                    a = choose_action(logits[0, 0], False, self.rng)
+                if self.teacher is not None:
+                    seg.teacher_logp.append(self.teacher.step(info))
+                obs, r, terminated, truncated, info = self.env.step(a)
+                seg.views.append(view)
+                seg.actions.append(a)
+                seg.rewards.append(float(r))
+                ep_return += float(r)
+                collisions += int(bool(info["collided"]))
+                t += 1
+                view, _ = obs_inputs(obs, info, self.frozen)
+                if terminated or truncated:
+                    break
+            done = terminated or truncated
+            if terminated or (truncated and not cfg.loss.bootstrap_on_truncation):
+                bootstrap = 0.0
+            else:  # V(s_next), detached, without advancing the state
+                with torch.no_grad():
+                    if per_step:
+                        _, v_next, _ = torch.func.functional_call(
+                            self.model, theta, (view[None, None], target[None],
+                                                detach_state(state)))
+                    else:
+                        _, v_next, _ = self.actor_net(view[None, None], tfeat, state)
+                bootstrap = float(v_next[0, 0])
+            if per_step:
+                lg = torch.stack(logits_steps)
+                terms = actor_critic_loss(lg, torch.stack(values_steps), seg.actions,
+                                          seg.rewards, bootstrap, cfg.loss)
+                loss = terms.total
+                if lam > 0.0 and seg.teacher_logp:
+                    loss = loss + lam * teacher_kl(torch.stack(seg.teacher_logp), lg)
+            else:
+                out = segment_loss(self.model, theta, seg, bootstrap, cfg.loss, gstate,
+                                   kl_weight=lam)
+                loss, terms, gstate = out.loss, out.terms, out.end_state
+            n_seg += 1
+            pl += terms.policy.item()
+            vl += terms.value.item()
+            ent += terms.entropy.item() / len(seg)
+            window.append(loss)
+            if len(window) < cfg.k_segments and not done:
+                theta = sgd_step(theta, loss, cfg.alpha, create_graph=cfg.second_order)
+                n_inner += 1
+                self._event("inner", t)
+            elif done and not cfg.flush_partial_window and len(window) < cfg.k_segments:
+                window = []
+            else:
+                for p, g in zip(phi, grads_of(torch.stack(window).sum(), phi), strict=True):
+                    p.grad = g
+                self.apply_gradients()
+                self.sync()  # phi_hat <- the new global phi; theta <- phi_hat
+                theta = dict(zip(self.names, phi, strict=True))
+                n_adapt += 1
+                self._event("adapt", t, len(window))
+                if self.theta_log is not None:
+                    self.theta_log.append({n: v.detach().clone() for n, v in theta.items()})
+                state = detach_state(state)
+                gstate = state
+                window = []
+        self.env_steps += t
+        success = bool(info["success"])
+        return {"episode": episode, "worker": self.rank, "task": info["task"],
+                "task_index": int(info["task_index"]), "return": ep_return, "length": t,
+                "success": success, "spl": spl(success, shortest, t),
+                "collisions": collisions, "shortest_path": shortest,
+                "policy_loss": pl / max(n_seg, 1), "value_loss": vl / max(n_seg, 1),
+                "entropy": ent / max(n_seg, 1), "env_steps": t,
+                "wall_s": time.perf_counter() - t0, "inner_updates": n_inner,
+                "adaptive_updates": n_adapt, "kl_weight": lam}
+
+
+def gradient_path(cfg: Any) -> dict[str, Any]:
+    """What config.json records about how gradients were computed."""
+    return {"path": getattr(cfg, "gradient_path", "recompute"),
+            "order": "second" if getattr(cfg, "second_order", False) else "first",
+            "fused_adam": bool(cfg.fused),
+            "inner_updates": "torch.func.functional_call + autograd.grad(create_graph="
+                             f"{bool(getattr(cfg, 'second_order', False))}, retain_graph=True)"}
+
+
+class ISARTrainer(A3CTrainer):
+    """Trains an :class:`ActorCritic` with ISAR (arguments as :class:`A3CTrainer`, with an
+    :class:`ISARConfig`; ``teacher`` adds the curriculum's KL prior)."""
+
+    algorithm = "isar"
+    config_key = "isar"
+    worker_cls = ISARWorker
+
+    def __init__(self, env_factory: Any, net_cfg: Any = None, cfg: ISARConfig | None = None,
+                 *, teacher: Any = None, **kwargs: Any) -> None:
+        self.teacher_spec = teacher
+        super().__init__(env_factory, net_cfg, cfg if cfg is not None else ISARConfig(),
+                         **kwargs)
+
+    def worker_extra(self) -> dict[str, Any] | None:
+        extra = dict(super().worker_extra() or {})
+        if self.teacher_spec is not None:
+            extra["teacher"] = self.teacher_spec
+        return extra or None
+
+    def inline_worker(self) -> A3CWorker:
+        w = super().inline_worker()
+        w.attach(self.worker_extra())  # type: ignore[attr-defined]
+        return w
+
+    def resolved_config(self) -> dict[str, Any]:
+        d = super().resolved_config()
+        d["gradient_path"] = gradient_path(self.cfg)
+        d["teacher"] = None if self.teacher_spec is None else {
+            "kind": "kl", "checkpoint": str(self.teacher_spec.checkpoint),
+            "budget": self.teacher_spec.budget, "fraction": self.teacher_spec.fraction}
+        return d
+
+
+def train_isar(env_factory: Any, net_cfg: Any = None, cfg: ISARConfig | None = None,
+               **kwargs: Any) -> Any:
+    """Build an :class:`ISARTrainer` and run it."""
+    return ISARTrainer(env_factory, net_cfg, cfg, **kwargs).train()

@@ -1,0 +1,207 @@
+"""Configuration of SAVN, ISAR, meta-training and the curriculum (ALGORITHMS.md (b)-(e)).
+
+SAVN and ISAR configs extend :class:`~geonav.policy.config.A3CConfig`: they run on the
+A3C trainer's machinery (workers, shared Adam, checkpoints, metrics), so ``episodes``,
+``workers``, ``lr`` (the outer/adaptive learning rate), ``seed`` and the rest mean the
+same. Every interpretation of the paper is a named field here and is written into
+each run's ``config.json``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from geonav.errors import ConfigError
+from geonav.policy.config import A3CConfig, LossConfig, from_dict, to_dict
+
+GRADIENT_PATHS = ("recompute", "per-step")
+
+
+@dataclass(frozen=True)
+class SAVNConfig(A3CConfig):
+    """SAVN (ALGORITHMS.md (b)); ``lr`` is the outer learning rate."""
+
+    preset: str = "savn-published"
+    """'savn-published' (k=6, G=4, allenai/savn) or 'savn-aligned' (k=5, no limit); the
+    preset only records which one was asked for (k_steps and inner_steps are the values)."""
+    k_steps: int = 6
+    """k: steps per segment; the learned loss sees exactly k rows."""
+    inner_steps: int = 4
+    """G: inner SGD steps per episode at most (-1: no limit)."""
+    inner_lr: float = 1e-4
+    """alpha: learning rate of the inner SGD steps on the policy parameters."""
+    tcn_channels: int = 10
+    """Channels of the learned loss's first temporal convolution (k -> 10 -> 1)."""
+    second_order: bool = True
+    """Differentiate the meta-loss through the inner updates (create_graph=True), as SAVN."""
+    max_grad_norm: float = 0.0
+    """Gradient-norm clip of the meta-gradient (0: none; SAVN does not clip it)."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.k_steps < 2:
+            raise ConfigError(f"k_steps must be >= 2 (the TCN needs 2 rows), got {self.k_steps}")
+        if self.inner_steps < -1:
+            raise ConfigError(f"inner_steps must be >= -1, got {self.inner_steps}")
+
+
+SAVN_PRESETS: dict[str, dict[str, Any]] = {
+    "savn-published": {"preset": "savn-published", "k_steps": 6, "inner_steps": 4},
+    "savn-aligned": {"preset": "savn-aligned", "k_steps": 5, "inner_steps": -1},
+}
+
+
+@dataclass(frozen=True)
+class ISARConfig(A3CConfig):
+    """ISAR, Algorithm 1 as resolved in ALGORITHMS.md (c); ``lr`` is beta (adaptive Adam)."""
+
+    n_steps: int = 5
+    """N: steps per segment; theta takes an inner SGD step at every segment end."""
+    k_segments: int = 3
+    """K: segments per window; phi takes an Adam step every K*N steps."""
+    alpha: float = 1e-4
+    """alpha: learning rate of the inner SGD update of theta."""
+    second_order: bool = True
+    """Differentiate the window loss through the inner updates (Eq. 3); False gives
+    sum_k grad_theta L_AC(theta_k) (first order)."""
+    flush_partial_window: bool = True
+    """At done, take the adaptive update on the partial window (always in the spec)."""
+    gradient_path: str = "recompute"
+    """'recompute': act under no_grad, then recompute each segment from its stored start
+    state in one batched call with the graph; 'per-step': keep the graph of every acting
+    forward (slower; the same numbers)."""
+    t_max: int = 15
+    """Unused by ISAR (the update schedule is n_steps and k_segments)."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.n_steps < 1 or self.k_segments < 1:
+            raise ConfigError(f"n_steps and k_segments must be >= 1, got {self.n_steps}, "
+                              f"{self.k_segments}")
+        if self.gradient_path not in GRADIENT_PATHS:
+            raise ConfigError(f"gradient_path must be one of {GRADIENT_PATHS}, "
+                              f"not {self.gradient_path!r}")
+
+
+BASE_CONFIGS: dict[str, type[A3CConfig]] = {"a3c": A3CConfig, "savn": SAVNConfig,
+                                            "isar": ISARConfig}
+
+
+def base_config(algo: str, options: dict[str, Any]) -> A3CConfig:
+    """The config of ``algo`` from a dict of options (a SAVN ``preset`` fills k and G)."""
+    if algo not in BASE_CONFIGS:
+        raise ConfigError(f"algo must be one of {sorted(BASE_CONFIGS)}, not {algo!r}")
+    opts = dict(options)
+    if algo == "savn" and "preset" in opts:
+        if opts["preset"] not in SAVN_PRESETS:
+            raise ConfigError(f"SAVN preset must be one of {sorted(SAVN_PRESETS)}, "
+                              f"not {opts['preset']!r}")
+        opts = {**SAVN_PRESETS[opts["preset"]], **{k: v for k, v in opts.items()
+                                                   if k != "preset"}}
+    if isinstance(opts.get("loss"), LossConfig):
+        opts["loss"] = to_dict(opts["loss"])
+    return from_dict(BASE_CONFIGS[algo], opts)
+
+
+@dataclass(frozen=True)
+class MetaConfig:
+    """Meta-training over meta-tasks, Eq. 1 (ALGORITHMS.md (d))."""
+
+    episodes: int = 1000
+    """Episodes in total, counted over all tasks (including resumed ones)."""
+    workers: int = 2
+    """Worker processes running the tasks of a batch in parallel (0: single process)."""
+    batch_tasks: int = 0
+    """B: tasks per meta update, taken in cyclic order (0: the worker count, at least 1)."""
+    episodes_per_task: int = 1
+    """E: episodes of the base algorithm per task visit."""
+    meta_lr: float = 1e-3
+    """eta: learning rate of the meta update psi <- psi - eta * sum_i g_i."""
+    meta_optimizer: str = "sgd"
+    """'sgd' (Eq. 1) or 'adam' (a reported option)."""
+    seed: int = 0
+    """Seed of torch, numpy and the environments."""
+    checkpoint_every: int = 500
+    """Write checkpoints/latest.pt after the meta update that reaches every this many
+    episodes (0: only the final one)."""
+    torch_threads: int = 1
+    """Torch intra-op threads per worker."""
+
+    def __post_init__(self) -> None:
+        if self.episodes < 1 or self.workers < 0 or self.batch_tasks < 0 \
+                or self.episodes_per_task < 1:
+            raise ConfigError("episodes and episodes_per_task must be >= 1, workers and "
+                              "batch_tasks >= 0")
+        if self.meta_optimizer not in ("sgd", "adam"):
+            raise ConfigError(f"meta_optimizer must be 'sgd' or 'adam', "
+                              f"not {self.meta_optimizer!r}")
+        if self.meta_lr <= 0:
+            raise ConfigError(f"meta_lr must be positive, got {self.meta_lr}")
+
+    @property
+    def batch(self) -> int:
+        return self.batch_tasks or max(1, self.workers)
+
+
+TEACHERS = ("kl", "none", "input")
+
+
+@dataclass(frozen=True)
+class CurriculumConfig:
+    """The altitude curriculum (ALGORITHMS.md (e))."""
+
+    levels_m: tuple[float, ...] = (75.0, 45.0, 15.0)
+    """Stage altitudes in metres, in order, on the same lattice."""
+    stage_episodes: int = 2000
+    """Episode budget of each stage."""
+    max_steps: int = 120
+    """Episode cap T_max of every stage."""
+    teacher: str = "kl"
+    """'kl': KL prior to the previous stage's frozen policy (option A, default); 'none';
+    'input': the extra-input variant (option B, not implemented)."""
+    teacher_levels_m: tuple[float, ...] | None = None
+    """Stages that get the teacher (None: every stage after the first; the paper's
+    reading is (45,))."""
+    teacher_decay_fraction: float = 0.25
+    """lambda falls linearly from 1 to 0 over this fraction of the stage budget."""
+    first_teacher_alt_m: float | None = None
+    """Altitude at which the init policy (the teacher of the first stage) was trained;
+    only needed when the first stage is in teacher_levels_m (e.g. 300)."""
+
+    def __post_init__(self) -> None:
+        if not self.levels_m:
+            raise ConfigError("levels_m must name at least one altitude")
+        if self.teacher not in TEACHERS:
+            raise ConfigError(f"teacher must be one of {TEACHERS}, not {self.teacher!r}")
+        if self.teacher == "input":
+            raise ConfigError("teacher='input' (option B, the extra input slot) is not "
+                              "implemented; use 'kl' or 'none'")
+        if self.stage_episodes < 1 or self.max_steps < 1:
+            raise ConfigError("stage_episodes and max_steps must be >= 1")
+        if not 0.0 < self.teacher_decay_fraction <= 1.0:
+            raise ConfigError("teacher_decay_fraction must lie in (0, 1]")
+
+    def teacher_at(self, stage: int) -> bool:
+        if self.teacher == "none":
+            return False
+        if self.teacher_levels_m is None:
+            return stage > 0
+        return float(self.levels_m[stage]) in {float(x) for x in self.teacher_levels_m}
+
+
+def kl_weight(episode: int, budget: int, fraction: float = 0.25) -> float:
+    """lambda of the KL prior at a stage's ``episode`` (1-based): 1 at the first episode,
+    falling linearly to 0 at ``fraction * budget`` episodes and 0 after."""
+    span = fraction * budget
+    if span <= 0:
+        return 0.0
+    return float(max(0.0, 1.0 - (episode - 1) / span))
+
+
+def meta_from_dict(d: dict[str, Any]) -> MetaConfig:
+    return from_dict(MetaConfig, d)
+
+
+__all__ = ["SAVNConfig", "ISARConfig", "MetaConfig", "CurriculumConfig", "SAVN_PRESETS",
+           "base_config", "kl_weight"]
