@@ -113,7 +113,7 @@ class A3CWorker:
         self.reset_options: dict[str, Any] | None = None
         """Options of the next ``env.reset`` (meta-training picks the task with them)."""
         self.on_gradients: Callable[[list[torch.Tensor]], None] | None = None
-        """Called with the (clipped) gradients of every update before the optimiser steps
+        """Called with the unclipped gradients of every update before the optimiser steps
         (meta-training sums them into the task gradient)."""
         self._params: list[torch.Tensor] = list(model.parameters())
         self._shared_params: list[torch.Tensor] | None = list(shared_model.parameters()) \
@@ -170,12 +170,12 @@ class A3CWorker:
         return loss
 
     def apply_gradients(self) -> None:
-        """Clip the local ``.grad`` to ``max_grad_norm``, hand it to the shared parameters
-        (through :attr:`on_gradients` first) and step the shared optimiser."""
-        if self.cfg.max_grad_norm:
-            nn.utils.clip_grad_norm_(self._params, self.cfg.max_grad_norm)
+        """Show the local ``.grad`` to :attr:`on_gradients` (unclipped), clip it to
+        ``max_grad_norm``, hand it to the shared parameters and step the shared optimiser."""
         if self.on_gradients is not None:
             self.on_gradients([p.grad for p in self._params])  # type: ignore[misc]
+        if self.cfg.max_grad_norm:
+            nn.utils.clip_grad_norm_(self._params, self.cfg.max_grad_norm)
         if self._shared_params is not None:
             for p, sp in zip(self._params, self._shared_params, strict=True):
                 sp.grad = p.grad
@@ -346,8 +346,7 @@ class A3CTrainer:
         params = list(self.model.parameters())
         for m in self.aux.values():
             params += list(m.parameters())
-        self.optimizer = SharedAdam(params, lr=cfg.lr, betas=cfg.adam_betas,
-                                    eps=cfg.adam_eps, amsgrad=cfg.amsgrad, fused=cfg.fused)
+        self.optimizer = self.build_optimizer(params)
         self.start_episode = 0
         self.rng_state: dict[str, Any] | None = None
         if self.ckpt is not None:
@@ -367,6 +366,12 @@ class A3CTrainer:
         self.episodes_done = self.start_episode
 
     # -- hooks for the algorithms built on this trainer (SAVN, ISAR) ----------------------
+    def build_optimizer(self, params: list[torch.Tensor]) -> torch.optim.Optimizer:
+        """The shared optimiser (SharedAdam); meta-training uses its own."""
+        cfg = self.cfg
+        return SharedAdam(params, lr=cfg.lr, betas=cfg.adam_betas, eps=cfg.adam_eps,
+                          amsgrad=cfg.amsgrad, fused=cfg.fused)
+
     def build_aux(self) -> dict[str, nn.Module]:
         """Shared modules trained beside the policy (name -> module); A3C has none."""
         return {}
