@@ -161,7 +161,7 @@ def run_experiment(
         progress: input-preparation progress callback.
         report: write summary.json and report.md at the end.
     """
-    root = Path(out_root) / cfg.name
+    root = Path(out_root).resolve() / cfg.name
     root.mkdir(parents=True, exist_ok=True)
     previous = _read_json(root / "config.json")
     resolved = cfg.to_dict()

@@ -119,6 +119,8 @@ def execute_stage(p: dict[str, Any]) -> dict[str, Any]:
         # killed before its first checkpoint: start the unit again from scratch
         for name in ("metrics.csv", "config.json", "progress.json"):
             (out / name).unlink(missing_ok=True)
+    if resume is not None:
+        truncate_metrics(out / "metrics.csv", resume)
     env_factory = EnvFactory(p["scene"], p["tasks"])
     callbacks = [ProgressFile(out / "progress.json")]
     model, episodes, checkpoint = TRAINERS[key](p, env_factory, callbacks, resume)
@@ -126,6 +128,26 @@ def execute_stage(p: dict[str, Any]) -> dict[str, Any]:
     return dict(stage=p["stage"], seed=p["seed"], mode=p["mode"], algo=p["algo"],
                 episodes=int(episodes), checkpoint=checkpoint, metrics=str(out / "metrics.csv"),
                 scene=p["scene"], tasks=p["tasks"], eval=evaluation, trajectories=trajectories)
+
+
+def truncate_metrics(metrics_csv: Path, checkpoint: str) -> None:
+    """Drop metric rows logged after ``checkpoint`` was written (they will be re-run)."""
+    from geonav.policy.checkpoint import load_checkpoint
+
+    if not metrics_csv.exists():
+        return
+    episodes = load_checkpoint(checkpoint).episodes
+    lines = metrics_csv.read_text().splitlines(keepends=True)
+    if not lines:
+        return
+    kept = [lines[0]] + [ln for ln in lines[1:] if ln.strip() and
+                         int(float(ln.split(",", 1)[0])) <= episodes]
+    if len(kept) != len(lines):
+        tmp = metrics_csv.with_name(".metrics.tmp")
+        tmp.write_text("".join(kept))
+        os.replace(tmp, metrics_csv)
+        log.info("resuming at episode %d: dropped %d metric rows logged after the checkpoint",
+                 episodes, len(lines) - len(kept))
 
 
 def evaluate_unit(model: Any, checkpoint: str, env_factory: Any, p: dict[str, Any]

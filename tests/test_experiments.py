@@ -1,0 +1,208 @@
+"""The transfer experiment runner end to end on a tiny config (real training, seconds)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from geonav.errors import ConfigError
+from geonav.experiments.config import load_config, parse_config
+
+TINY = """
+name = "tiny"
+seeds = [0, 1]
+eval_starts = 8
+
+[convergence]
+window = 10
+threshold = 0.9
+hold = 0.8
+
+[scenes.A]
+synthetic = "residential"
+size_m = 300.0
+gsd_m = 1.0
+
+[scenes.B]
+synthetic = "campus"
+size_m = 300.0
+gsd_m = 1.0
+seed = 1
+
+[tasks.A_meta]
+scene = "A"
+kind = "meta"
+count = 2
+size_m = 45.0
+alt_m = 60.0
+step_m = 15.0
+max_steps = 15
+obs_size_px = 24
+
+[tasks.B_target]
+scene = "B"
+kind = "meta"
+count = 1
+size_m = 45.0
+alt_m = 60.0
+step_m = 15.0
+max_steps = 15
+obs_size_px = 24
+
+[stages.pre]
+mode = "train"
+tasks = "A_meta"
+algo = "a3c"
+episodes = EPISODES
+workers = 0
+lr = 0.001
+checkpoint_every = 10
+
+[stages.transfer]
+mode = "train"
+tasks = "B_target"
+algo = "a3c"
+init = "pre"
+episodes = EPISODES
+workers = 0
+lr = 0.001
+checkpoint_every = 10
+
+[stages.scratch]
+mode = "train"
+tasks = "B_target"
+algo = "a3c"
+episodes = EPISODES
+workers = 0
+lr = 0.001
+checkpoint_every = 10
+
+[[compare]]
+name = "transfer vs scratch"
+part = "transfer"
+methods = ["scratch", "transfer"]
+paper = { transfer = 2000, scratch = 50000 }
+"""
+
+
+def _write(tmp_path: Path, episodes: int) -> Path:
+    cfg = tmp_path / "tiny.toml"
+    cfg.write_text(TINY.replace("EPISODES", str(episodes)))
+    return cfg
+
+
+def _geonav(*args: str, cwd: Path) -> list[str]:
+    return [sys.executable, "-m", "geonav.cli", *args]
+
+
+def test_tiny_experiment_end_to_end(tmp_path):
+    cfg = _write(tmp_path, 40)
+    run = subprocess.run(_geonav("experiment", "run", str(cfg), "--out", "runs", "--jobs", "2",
+                                 cwd=tmp_path), cwd=tmp_path, capture_output=True, text=True,
+                         timeout=300)
+    assert run.returncode == 0, run.stderr[-3000:]
+    root = tmp_path / "runs" / "tiny"
+    report = (root / "report.md").read_text()
+    for section in ("# Experiment `tiny`", "## transfer vs scratch", "| scratch |",
+                    "| transfer |", "Ratio transfer / scratch", "the paper's: 0.04",
+                    "curves-transfer-vs-scratch.png", "trajectories-transfer-vs-scratch.png",
+                    "## Stages"):
+        assert section in report, section
+    assert (root / "curves-transfer-vs-scratch.png").stat().st_size > 10_000
+    summary = json.loads((root / "summary.json").read_text())
+    comp = summary["comparisons"][0]
+    for method in ("scratch", "transfer"):
+        rec = comp["methods"][method]
+        assert rec["convergence"]["n"] == 2
+        assert 0.0 <= rec["final_success"] <= 1.0
+        assert len(rec["runs"]) == 2 and all(r["episodes"] == 40 for r in rec["runs"])
+    # transfer started from pre's final weights, scratch did not
+    tr = json.loads((root / "units/transfer/seed-0/config.json").read_text())
+    assert tr["algorithm"] == "a3c"
+    result = json.loads((root / "units/transfer/seed-1/result.json").read_text())
+    assert Path(result["checkpoint"]).exists() and result["eval"]["episodes"] == 8
+
+
+def test_resume_after_kill_skips_finished_units(tmp_path):
+    cfg = _write(tmp_path, 150)
+    root = tmp_path / "runs" / "tiny"
+    proc = subprocess.Popen(_geonav("experiment", "run", str(cfg), "--out", "runs", "--jobs", "1",
+                                    "--only", "transfer", cwd=tmp_path), cwd=tmp_path,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            start_new_session=True)
+    first_done = None
+    deadline = time.time() + 240
+    try:
+        while time.time() < deadline:
+            done = sorted(root.glob("units/*/seed-*/result.json"))
+            ckpts = [p for p in root.glob("units/*/seed-*/checkpoints/latest.pt")
+                     if not (p.parent.parent / "result.json").exists()]
+            if done and ckpts:
+                first_done = done[0]
+                break
+            time.sleep(0.2)
+        assert first_done is not None, "no unit finished in time"
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    mtime = first_done.stat().st_mtime_ns
+    unfinished = [p.parent.parent for p in root.glob("units/*/seed-*/checkpoints/latest.pt")
+                  if not (p.parent.parent / "result.json").exists()]
+    assert unfinished
+    rerun = subprocess.run(_geonav("experiment", "run", str(cfg), "--out", "runs", "--jobs", "2",
+                                   "--only", "transfer", cwd=tmp_path), cwd=tmp_path,
+                           capture_output=True, text=True, timeout=400)
+    assert rerun.returncode == 0, rerun.stderr[-3000:]
+    assert first_done.stat().st_mtime_ns == mtime  # finished unit skipped
+    resumed = json.loads((unfinished[0] / "config.json").read_text())
+    assert resumed["resume"] and resumed["start_episode"] > 0  # continued from its checkpoint
+    assert len(list(root.glob("units/*/seed-*/result.json"))) == 6
+    rows = (unfinished[0] / "metrics.csv").read_text().strip().splitlines()
+    episodes = [int(r.split(",")[0]) for r in rows[1:]]
+    assert episodes[-1] == 150 and len(set(episodes)) == len(episodes)
+
+
+def test_config_errors(tmp_path):
+    with pytest.raises(ConfigError, match="does not exist"):
+        load_config(tmp_path / "none.toml")
+    (tmp_path / "bad.toml").write_text("name = [")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_config(tmp_path / "bad.toml")
+    base = {"scenes": {"A": {"synthetic": "residential"}},
+            "tasks": {"t": {"scene": "A"}},
+            "stages": {"s": {"mode": "train", "tasks": "t"}}}
+    parse_config(base)
+    with pytest.raises(ConfigError, match="unknown top-level"):
+        parse_config({**base, "oops": 1})
+    with pytest.raises(ConfigError, match="mode = 'fly'"):
+        parse_config({**base, "stages": {"s": {"mode": "fly", "tasks": "t"}}})
+    with pytest.raises(ConfigError, match="init = 'x' is not a stage"):
+        parse_config({**base, "stages": {"s": {"mode": "train", "tasks": "t", "init": "x"}}})
+    with pytest.raises(ConfigError, match="cycle"):
+        parse_config({**base, "stages": {"s": {"mode": "train", "tasks": "t", "init": "u"},
+                                         "u": {"mode": "train", "tasks": "t", "init": "s"}}})
+    with pytest.raises(ConfigError, match="not among the scenes"):
+        parse_config({**base, "tasks": {"t": {"scene": "Z"}}})
+    with pytest.raises(ConfigError, match="unknown key"):
+        parse_config({**base, "scenes": {"A": {"synthetic": "residential", "colour": 1}}})
+    cfg = parse_config({**base, "compare": [{"name": "c", "part": "p", "methods": ["s"]}]})
+    with pytest.raises(ConfigError, match="unknown part"):
+        cfg.stages_for(["q"])
+
+
+def test_shipped_configs_parse():
+    root = Path(__file__).resolve().parent.parent / "configs"
+    files = sorted(root.glob("*.toml"))
+    assert files, "configs/ must ship experiment configs"
+    for f in files:
+        cfg = load_config(f)
+        assert cfg.compare and cfg.stages
+        for part in cfg.parts():
+            assert cfg.stages_for([part])
