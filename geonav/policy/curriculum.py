@@ -1,0 +1,193 @@
+"""The altitude curriculum (ALGORITHMS.md (e)).
+
+Stages at ``levels_m`` (75, 45, 15 m by default) on the same lattice (the task set's
+tasks ``.with_alt``), each starting from the previous stage's final policy (the first
+from ``init``, weights only) and trained with the base algorithm (ISAR by default) with
+T_max = 120. A stage ends when the convergence criterion of ALGORITHMS.md (f) holds on
+its training episodes (:func:`geonav.experiments.convergence.episodes_to_convergence`)
+or when its budget is spent. With the KL teacher (option A, default) a stage's
+interaction losses gain lambda * KL(pi_T || pi_theta), pi_T being the previous stage's
+frozen final policy fed the render at the same cell at the previous altitude, lambda
+falling linearly from 1 to 0 over the first 25 % of the stage budget.
+
+Run folder: ``stage_<i>_<alt>m/`` per stage (the trainer's own layout), plus
+``curriculum.json`` (stages done, their episodes and checkpoints) and
+``checkpoints/latest.pt`` / ``final.pt`` (copies of the newest stage checkpoint).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+from geonav.errors import ConfigError
+from geonav.policy.callbacks import Callback
+from geonav.policy.config import A3CConfig, NetConfig, to_dict
+from geonav.policy.meta_config import CurriculumConfig
+
+log = logging.getLogger(__name__)
+
+
+class ConvergenceStop(Callback):
+    """Stops a stage once the convergence criterion holds on its training successes."""
+
+    def __init__(self, criterion: Any, check_every: int = 1) -> None:
+        self.criterion = criterion
+        self.check_every = max(1, check_every)
+        self.successes: list[bool] = []
+        self.converged_at: int | None = None
+
+    def on_episode(self, record: dict[str, Any]) -> bool:
+        from geonav.experiments.convergence import episodes_to_convergence
+
+        self.successes.append(bool(record["success"]))
+        if len(self.successes) % self.check_every:
+            return True
+        res = episodes_to_convergence(self.successes, self.criterion)
+        if not res.censored:
+            self.converged_at = res.episodes
+            return False
+        return True
+
+
+@dataclass
+class StageResult:
+    alt_m: float
+    episodes: int
+    checkpoint: str
+    converged_at: int | None
+    teacher: str | None
+
+
+@dataclass
+class CurriculumResult:
+    model: Any
+    stages: list[StageResult] = field(default_factory=list)
+    checkpoint: str | None = None
+
+    @property
+    def episodes(self) -> int:
+        return sum(s.episodes for s in self.stages)
+
+
+def trainer_class(algo: str) -> type:
+    from geonav.policy.a3c import A3CTrainer
+    from geonav.policy.isar import ISARTrainer
+    from geonav.policy.savn import SAVNTrainer
+
+    classes = {"a3c": A3CTrainer, "isar": ISARTrainer, "savn": SAVNTrainer}
+    if algo not in classes:
+        raise ConfigError(f"curriculum algo must be one of {sorted(classes)}, not {algo!r}")
+    return classes[algo]
+
+
+def run_curriculum(env_factory: Any, init: str | None, algo: str, base_cfg: A3CConfig,
+                   cfg: CurriculumConfig | None = None, *, out_dir: str | os.PathLike[str],
+                   criterion: Any = None, net_cfg: NetConfig | None = None,
+                   callbacks: Sequence[Callback] = (), mp_context: str | None = None
+                   ) -> CurriculumResult:
+    """Run (or resume) the curriculum.
+
+    Args:
+        env_factory: a :class:`geonav.policy.cli.EnvFactory` (a dataclass with ``alt_m``
+            and ``max_steps``) over the task set; each stage replaces its altitude.
+        init: the starting policy (e.g. the 300 m meta-policy), weights only; None starts
+            from scratch.
+        algo: 'isar' (default in the paper), 'a3c' or 'savn'.
+        base_cfg: the algorithm's config; its ``episodes`` is replaced by the stage budget.
+        cfg: levels, stage budget, T_max, teacher.
+        out_dir: run folder (see the module docstring); an existing ``curriculum.json``
+            is resumed.
+        criterion: a :class:`geonav.experiments.convergence.ConvergenceCriterion`
+            (default: its defaults).
+    """
+    from geonav.experiments.convergence import ConvergenceCriterion
+    from geonav.policy.checkpoint import check_compatible, load_checkpoint
+    from geonav.policy.teacher import TeacherSpec
+
+    cfg = cfg if cfg is not None else CurriculumConfig()
+    criterion = criterion if criterion is not None else ConvergenceCriterion()
+    out = Path(out_dir)
+    (out / "checkpoints").mkdir(parents=True, exist_ok=True)
+    state_path = out / "curriculum.json"
+    state: dict[str, Any] = json.loads(state_path.read_text()) if state_path.exists() else {
+        "stages": [], "init": init, "algo": algo, "curriculum": to_dict(cfg),
+        "criterion": {"window": criterion.window, "threshold": criterion.threshold,
+                      "hold": criterion.hold}, "base": to_dict(base_cfg)}
+    cls = trainer_class(algo)
+    prev_ckpt, prev_alt = init, cfg.first_teacher_alt_m
+    model = None
+    result = CurriculumResult(None)
+    for s in state["stages"]:
+        result.stages.append(StageResult(**s))
+        prev_ckpt, prev_alt = s["checkpoint"], s["alt_m"]
+    for i in range(len(state["stages"]), len(cfg.levels_m)):
+        alt = float(cfg.levels_m[i])
+        factory = replace(env_factory, alt_m=alt, max_steps=cfg.max_steps)
+        stage_dir = out / f"stage_{i}_{alt:g}m"
+        latest = stage_dir / "checkpoints" / "latest.pt"
+        resume = str(latest) if latest.exists() else None
+        if resume is None and stage_dir.exists():
+            shutil.rmtree(stage_dir)  # killed before its first checkpoint: start again
+        teacher = None
+        if cfg.teacher_at(i):
+            if prev_ckpt is None or prev_alt is None:
+                raise ConfigError(f"stage {i} ({alt:g} m) needs a teacher, but there is no "
+                                  "previous policy with a known altitude (pass init and "
+                                  "first_teacher_alt_m, or teacher_levels_m without it)")
+            teacher = TeacherSpec(str(prev_ckpt), replace(env_factory, alt_m=float(prev_alt),
+                                                          max_steps=cfg.max_steps),
+                                  cfg.stage_episodes, cfg.teacher_decay_fraction)
+        stop = ConvergenceStop(criterion)
+        kwargs: dict[str, Any] = {"out_dir": stage_dir, "resume": resume,
+                                  "callbacks": [stop, *callbacks], "mp_context": mp_context}
+        if teacher is not None:
+            if cls.__name__ == "A3CTrainer":
+                raise ConfigError("the KL teacher is available with isar and savn; use "
+                                  "teacher='none' with a3c")
+            kwargs["teacher"] = teacher
+        stage_net = net_cfg
+        if resume is None and prev_ckpt is not None:
+            stage_net = load_checkpoint(prev_ckpt).net_config
+        trainer = cls(factory, stage_net, replace(base_cfg, episodes=cfg.stage_episodes),
+                      **kwargs)
+        if resume is None and prev_ckpt is not None:
+            ck = load_checkpoint(prev_ckpt)
+            check_compatible(ck.meta, trainer.env, path=ck.path)
+            trainer.model.load_state_dict(ck.model_state)
+            if ck.extra:
+                for name, m in trainer.aux.items():
+                    if name in ck.extra:
+                        m.load_state_dict(ck.extra[name])
+        if resume is not None:  # the convergence window continues over the whole stage
+            from geonav.policy.callbacks import read_metrics
+
+            if (stage_dir / "metrics.csv").exists():
+                stop.successes = [bool(r["success"]) for r in
+                                  read_metrics(stage_dir / "metrics.csv")]
+        res = trainer.train()
+        model = res.model
+        stage = StageResult(alt, res.episodes, str(res.checkpoint), stop.converged_at,
+                            None if teacher is None else str(teacher.checkpoint))
+        result.stages.append(stage)
+        state["stages"].append(stage.__dict__)
+        for name in ("latest.pt", "final.pt"):
+            shutil.copyfile(res.checkpoint, out / "checkpoints" / f".{name}.tmp")
+            os.replace(out / "checkpoints" / f".{name}.tmp", out / "checkpoints" / name)
+        tmp = state_path.with_name(".curriculum.json.tmp")
+        tmp.write_text(json.dumps(state, indent=1))
+        os.replace(tmp, state_path)
+        prev_ckpt, prev_alt = str(res.checkpoint), alt
+        log.info("curriculum stage %d (%g m): %d episodes, converged at %s", i, alt,
+                 res.episodes, stop.converged_at)
+    if model is None:
+        model = load_checkpoint(prev_ckpt).build_model() if prev_ckpt else None
+    result.model = model
+    result.checkpoint = str(out / "checkpoints" / "final.pt")
+    return result
