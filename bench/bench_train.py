@@ -8,7 +8,7 @@ worker processes, this prints:
 * net:   steps/s of the network work alone (per step one batch-1 acting forward;
   per ``t_max`` steps the batched recompute, backward, clip and a fused Adam step)
   on random inputs, run in the same number of processes;
-* ratio: train / net.
+* ratio: median over the repeats of train / net (measured back to back).
 
 Run: ``.venv/bin/python bench/bench_train.py [--seconds 8] [--repeats 3]``.
 Figures are medians over the repeats. Targets on a 2-core machine: >= 300
@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import os
 import statistics
 import time
 
@@ -75,7 +76,7 @@ class _StopAfter(Callback):
 
 
 def train_rate(net: NetConfig, workers: int, seconds: float) -> float:
-    clock = _Clock(warmup=4 * workers)
+    clock = _Clock(warmup=4 * max(workers, 1))
     cfg = A3CConfig(episodes=10**6, workers=workers, seed=0)
     trainer = A3CTrainer(env_factory(net.obs_size_px), net, cfg, callbacks=[clock,
                          _StopAfter(seconds)], keep_records=False)
@@ -141,16 +142,21 @@ def main() -> None:
     torch.set_num_threads(1)
     setups = {"cnn-84px (trainable)": NetConfig(encoder="cnn", obs_size_px=84),
               "cached features (frozen)": NetConfig(encoder="random", obs_size_px=84)}
-    print(f"torch {torch.__version__}, {torch.get_num_interop_threads()} interop threads; "
-          f"{args.repeats} repeats of {args.seconds:g} s; medians (min-max)")
+    print(f"torch {torch.__version__}, {os.cpu_count()} CPUs, load average "
+          f"{os.getloadavg()[0]:.2f}; {args.repeats} repeats of {args.seconds:g} s; "
+          "medians (min-max)")
     print(f"{'setup':28s} {'W':>2s} {'train steps/s':>22s} {'net steps/s':>22s} {'ratio':>6s}")
     for name, net in setups.items():
         for w in args.workers:
-            tr = [train_rate(net, w, args.seconds) for _ in range(args.repeats)]
-            nr = [net_rate(net, w, args.seconds) for _ in range(args.repeats)]
+            tr, nr = [], []
+            for _ in range(args.repeats):  # interleaved, so both see the same machine load
+                tr.append(train_rate(net, w, args.seconds))
+                nr.append(net_rate(net, w, args.seconds))
             mt, mn = statistics.median(tr), statistics.median(nr)
+            ratio = statistics.median(t / n for t, n in zip(tr, nr, strict=True))
             print(f"{name:28s} {w:2d} {mt:8.0f} ({min(tr):5.0f}-{max(tr):5.0f}) "
-                  f"{mn:8.0f} ({min(nr):5.0f}-{max(nr):5.0f}) {mt / mn:6.2f}", flush=True)
+                  f"{mn:8.0f} ({min(nr):5.0f}-{max(nr):5.0f}) {ratio:6.2f}", flush=True)
+    print("load average (1, 5, 15 min) at the end: %.2f %.2f %.2f" % os.getloadavg())
 
 
 if __name__ == "__main__":

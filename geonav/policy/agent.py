@@ -61,10 +61,9 @@ def choose_action(logits: torch.Tensor, greedy: bool, rng: np.random.Generator |
         return int(torch.argmax(logits).item())
     if rng is None:
         raise ValueError("sampled actions need an rng")
-    probs = torch.softmax(logits.double(), dim=-1).numpy()
-    u = rng.random()
-    a = int(np.searchsorted(np.cumsum(probs), u * probs.sum(), side="right"))
-    return min(a, probs.shape[0] - 1)
+    cdf = np.cumsum(torch.softmax(logits, dim=-1).numpy(), dtype=np.float64)
+    a = int(np.searchsorted(cdf, rng.random() * cdf[-1], side="right"))
+    return min(a, cdf.shape[0] - 1)
 
 
 class Agent:

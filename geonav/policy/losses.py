@@ -51,17 +51,16 @@ def returns_and_advantages(rewards: Sequence[float] | torch.Tensor, values: torc
     Returns:
         (returns, advantages), each float32 (T,), without graph.
     """
-    r = torch.as_tensor(rewards, dtype=torch.float64).flatten()
-    v = values.detach().to(torch.float64).flatten()
-    T = r.shape[0]
-    if v.shape[0] != T:
-        raise ValueError(f"{T} rewards but {v.shape[0]} values")
-    returns = torch.empty(T, dtype=torch.float64)
-    advantages = torch.empty(T, dtype=torch.float64)
+    rl = torch.as_tensor(rewards, dtype=torch.float64).flatten().tolist()
+    vl = values.detach().to(torch.float64).flatten().tolist()
+    T = len(rl)
+    if len(vl) != T:
+        raise ValueError(f"{T} rewards but {len(vl)} values")
+    returns = [0.0] * T
+    advantages = [0.0] * T
     R = float(bootstrap)
     gae = 0.0
     next_v = float(bootstrap)
-    rl, vl = r.tolist(), v.tolist()
     for t in range(T - 1, -1, -1):
         R = rl[t] + gamma * R
         delta = rl[t] + gamma * next_v - vl[t]
@@ -69,7 +68,8 @@ def returns_and_advantages(rewards: Sequence[float] | torch.Tensor, values: torc
         returns[t] = R
         advantages[t] = gae
         next_v = vl[t]
-    return returns.float(), advantages.float()
+    return (torch.tensor(returns, dtype=torch.float32),
+            torch.tensor(advantages, dtype=torch.float32))
 
 
 def actor_critic_loss(logits: torch.Tensor, values: torch.Tensor, actions: Sequence[int] |
