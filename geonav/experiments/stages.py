@@ -100,6 +100,100 @@ def _train_a3c(p: dict[str, Any], env_factory: Any, callbacks: list[Any],
     return result.model, result.episodes, str(result.checkpoint)
 
 
+def _algo_cfg(p: dict[str, Any]) -> tuple[Any, Any, dict[str, Any]]:
+    """(base config, NetConfig or None, remaining options) from a payload's options."""
+    from geonav.policy.config import NetConfig, from_dict
+    from geonav.policy.meta_config import BASE_CONFIGS, base_config
+
+    opts = dict(p["options"])
+    net_opts = {k: opts.pop(k) for k in list(opts) if k in NetConfig.__dataclass_fields__}
+    known = BASE_CONFIGS[p["algo"]].__dataclass_fields__
+    base_opts = {k: opts.pop(k) for k in list(opts) if k in known}
+    cfg = base_config(p["algo"], {**base_opts, "episodes": p["episodes"],
+                                  "workers": p["workers"], "seed": p["seed"]})
+    return cfg, (from_dict(NetConfig, net_opts) if net_opts else None), opts
+
+
+def _init_net(p: dict[str, Any], net: Any, resume: str | None) -> Any:
+    if resume is None and p.get("init_checkpoint"):
+        from geonav.policy.checkpoint import load_checkpoint
+
+        return load_checkpoint(p["init_checkpoint"]).net_config
+    return net
+
+
+@trainer("train", "savn", "isar")
+def _train_meta_algo(p: dict[str, Any], env_factory: Any, callbacks: list[Any],
+                     resume: str | None) -> tuple[Any, int, str]:
+    from geonav.policy.isar import ISARTrainer
+    from geonav.policy.savn import SAVNTrainer
+
+    cfg, net, rest = _algo_cfg(p)
+    if rest:
+        raise ConfigError(f"stage {p.get('stage')!r}: unknown {p['algo']} option(s) "
+                          f"{sorted(rest)}")
+    cls = {"savn": SAVNTrainer, "isar": ISARTrainer}[p["algo"]]
+    t = cls(env_factory, _init_net(p, net, resume), cfg, out_dir=p["out_dir"], resume=resume,
+            callbacks=callbacks, tensorboard=False)
+    if resume is None:
+        _load_init(t.model, p.get("init_checkpoint"), t.env)
+    result = t.train()
+    return result.model, result.episodes, str(result.checkpoint)
+
+
+@trainer("meta-train", "a3c", "savn", "isar")
+def _meta_train(p: dict[str, Any], env_factory: Any, callbacks: list[Any],
+                resume: str | None) -> tuple[Any, int, str]:
+    from geonav.policy.config import from_dict
+    from geonav.policy.meta import MetaTrainer
+    from geonav.policy.meta_config import MetaConfig
+
+    cfg, net, rest = _algo_cfg(p)
+    meta_opts = {k: rest.pop(k) for k in list(rest) if k in MetaConfig.__dataclass_fields__}
+    if rest:
+        raise ConfigError(f"stage {p.get('stage')!r}: unknown meta-train option(s) "
+                          f"{sorted(rest)}")
+    meta = from_dict(MetaConfig, {**meta_opts, "episodes": p["episodes"],
+                                  "workers": p["workers"], "seed": p["seed"]})
+    t = MetaTrainer(env_factory, _init_net(p, net, resume), p["algo"], cfg, meta,
+                    out_dir=p["out_dir"], resume=resume, callbacks=callbacks,
+                    tensorboard=False)
+    if resume is None:
+        _load_init(t.model, p.get("init_checkpoint"), t.env)
+    result = t.train()
+    return result.model, result.episodes, str(result.checkpoint)
+
+
+@trainer("curriculum", "isar", "a3c", "savn")
+def _curriculum(p: dict[str, Any], env_factory: Any, callbacks: list[Any],
+                resume: str | None) -> tuple[Any, int, str]:
+    """The stages resume themselves from ``out_dir`` (curriculum.json and each stage's
+    checkpoints/latest.pt); ``episodes`` is the budget of each stage."""
+    from geonav.experiments.convergence import ConvergenceCriterion
+    from geonav.policy.config import from_dict
+    from geonav.policy.curriculum import run_curriculum
+    from geonav.policy.meta_config import CurriculumConfig
+
+    cfg, net, rest = _algo_cfg(p)
+    cur_opts = {k: rest.pop(k) for k in list(rest)
+                if k in CurriculumConfig.__dataclass_fields__}
+    if rest:
+        raise ConfigError(f"stage {p.get('stage')!r}: unknown curriculum option(s) "
+                          f"{sorted(rest)}")
+    for key in ("levels_m", "teacher_levels_m"):
+        if cur_opts.get(key) is not None:
+            cur_opts[key] = tuple(float(x) for x in cur_opts[key])
+    cur = from_dict(CurriculumConfig, {**cur_opts, "stage_episodes": p["episodes"]})
+    conv = p.get("convergence") or {}
+    criterion = ConvergenceCriterion(**{k: conv[k] for k in ("window", "threshold", "hold")
+                                        if k in conv})
+    res = run_curriculum(env_factory, p.get("init_checkpoint"), p["algo"], cfg, cur,
+                         out_dir=p["out_dir"], criterion=criterion,
+                         net_cfg=None if p.get("init_checkpoint") else net,
+                         callbacks=callbacks)
+    return res.model, res.episodes, str(res.checkpoint)
+
+
 def execute_stage(p: dict[str, Any]) -> dict[str, Any]:
     """Run a unit (see the module docstring); returns the result recorded in result.json."""
     import torch
