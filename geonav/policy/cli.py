@@ -76,7 +76,8 @@ def add_parser(subparsers: Any) -> None:
                               description="Train a policy on a scene's tasks. The run folder "
                               "gets config.json, metrics.csv, checkpoints/ and "
                               "learning_curve.png.")
-    p.add_argument("--algo", default="a3c", choices=["a3c"], help="training algorithm")
+    p.add_argument("--algo", default="a3c", choices=["a3c", "savn", "isar"],
+                   help="training algorithm")
     p.add_argument("--scene", required=True, help="scene package folder")
     p.add_argument("--tasks", required=True, help="task set JSON")
     p.add_argument("--altitude", type=float, default=None, metavar="M",
@@ -98,6 +99,9 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument("--config", default=None, metavar="TOML",
                    help="TOML file with [net] and [a3c] tables; command-line options win")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    from geonav.policy.meta_cli import add_algo_args, add_parsers
+
+    add_algo_args(p)
     p.set_defaults(handler=run_train)
 
     e = subparsers.add_parser("eval", help="evaluate a policy checkpoint",
@@ -115,6 +119,7 @@ def add_parser(subparsers: Any) -> None:
     e.add_argument("--json", default=None, metavar="FILE", help="also write the results as JSON")
     e.add_argument("--no-progress", action="store_true", help="no progress bar")
     e.set_defaults(handler=run_eval)
+    add_parsers(subparsers)
 
 
 def resolve_train_configs(args: argparse.Namespace) -> tuple[Any, Any]:
@@ -177,7 +182,9 @@ def run_train(args: argparse.Namespace) -> int:
     from geonav.policy.a3c import A3CTrainer
 
     if args.algo != "a3c":
-        raise ConfigError(f"--algo {args.algo!r} is not available yet; use a3c")
+        from geonav.policy.meta_cli import run_train_algo
+
+        return run_train_algo(args)
     net_cfg, a3c = resolve_train_configs(args)
     obs = args.obs_size if args.obs_size is not None else (
         net_cfg.obs_size_px if net_cfg is not None else None)
