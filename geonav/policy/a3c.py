@@ -301,6 +301,7 @@ class A3CTrainer:
             each sets one torch thread before any work), 'spawn' (default elsewhere; each
             worker re-imports torch, several seconds) or 'forkserver'.
         keep_records: keep every episode record in ``TrainResult.records``.
+        tensorboard: also log to ``out_dir/tb`` when the tensorboard extra is installed.
     """
 
     algorithm = "a3c"
@@ -323,6 +324,7 @@ class A3CTrainer:
         self.cfg = cfg
         self.mp_context = mp_context
         self.keep_records = keep_records
+        self.tensorboard = tensorboard
         self.callbacks = list(callbacks)
         self.env = env_factory()
         # Validate the resume checkpoint before touching the run folder.
@@ -348,7 +350,7 @@ class A3CTrainer:
         torch.manual_seed(cfg.seed)
         self.model = ActorCritic(self.net_cfg)
         self.aux: dict[str, nn.Module] = self.build_aux()
-        params = list(self.model.parameters())
+        params: list[torch.Tensor] = list(self.model.parameters())
         for m in self.aux.values():
             params += list(m.parameters())
         self.optimizer = self.build_optimizer(params)
@@ -410,7 +412,7 @@ class A3CTrainer:
         tmp.write_text(json.dumps(self.resolved_config(), indent=1))
         os.replace(tmp, cfg_path)
         cbs: list[Callback] = [CSVMetrics(self.out_dir / "metrics.csv")]
-        tb = tensorboard_callback(self.out_dir / "tb")
+        tb = tensorboard_callback(self.out_dir / "tb") if self.tensorboard else None
         if tb is not None:
             cbs.append(tb)
         return cbs

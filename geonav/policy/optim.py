@@ -20,7 +20,7 @@ class SharedAdam(torch.optim.Adam):
     Defaults follow SAVN's SharedAdam: lr 1e-4, betas (0.9, 0.999), eps 1e-3, amsgrad.
     """
 
-    def __init__(self, params: Iterable[torch.nn.Parameter], lr: float = 1e-4,
+    def __init__(self, params: Iterable[torch.Tensor], lr: float = 1e-4,
                  betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-3,
                  weight_decay: float = 0.0, amsgrad: bool = True, fused: bool = True) -> None:
         super().__init__(params, lr=lr, betas=betas, eps=eps, weight_decay=weight_decay,
