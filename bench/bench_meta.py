@@ -2,7 +2,8 @@
 
 Episodes are capped at 70 steps (T_max) on an 8x8 lattice at 75 m (some end earlier
 on success, so the cost is measured per step), with frozen cached features (encoder
-'random', 84 px, the default network sizes 256/256). Per algorithm: W worker processes train for ``--seconds`` after a
+'random', 84 px, the default network sizes 256/256). Per algorithm: W worker processes
+train for ``--seconds`` after a
 warm-up; steps/s = environment steps / wall time; "s/ep70" = 70 / per-worker steps/s.
 
 Run: ``.venv/bin/python bench/bench_meta.py [--seconds 10] [--repeats 3] [--workers 2]``.

@@ -151,7 +151,7 @@ def isar_window_ref(model, phi, env, n, alpha, cfg, fixed=None, create_graph=Tru
         if not last:
             gs = torch.autograd.grad(L, [theta[m] for m in names], create_graph=create_graph,
                                      retain_graph=True)
-            theta = {m: theta[m] - alpha * g for m, g in zip(names, gs)}
+            theta = {m: theta[m] - alpha * g for m, g in zip(names, gs, strict=False)}
     return total, out_fixed
 
 
@@ -162,8 +162,10 @@ def fd_check(fun, phi, grad, n_dirs=3, eps=1e-6, seed=0):
     for _ in range(n_dirs):
         d = {k: torch.randn(v.shape, generator=g, dtype=v.dtype) for k, v in phi.items()}
         with torch.enable_grad():
-            fp = float(fun({k: (v.detach() + eps * d[k]).requires_grad_(True) for k, v in phi.items()}))
-            fm = float(fun({k: (v.detach() - eps * d[k]).requires_grad_(True) for k, v in phi.items()}))
+            fp = float(fun({k: (v.detach() + eps * d[k]).requires_grad_(True)
+                            for k, v in phi.items()}))
+            fm = float(fun({k: (v.detach() - eps * d[k]).requires_grad_(True)
+                            for k, v in phi.items()}))
         fd = (fp - fm) / (2 * eps)
         an = float(sum((grad[k] * d[k]).sum() for k in phi))
         errs.append((fd, an))
@@ -187,7 +189,7 @@ def test_isar_window_meta_gradient_matches_finite_differences():
     model, env, cfg, grads, phi0 = run_isar(second_order=True)
     assert len(grads) == 1 and len(env.actions) == 15      # one window of K = 3 segments
     names = list(phi0)
-    impl = dict(zip(names, grads[0]))
+    impl = dict(zip(names, grads[0], strict=False))
     leaves = {k: v.clone().requires_grad_(True) for k, v in phi0.items()}
     _, fixed = isar_window_ref(model, leaves, env, 5, cfg.alpha, cfg.loss)
     fun = lambda p: isar_window_ref(model, p, env, 5, cfg.alpha, cfg.loss, fixed,  # noqa: E731
@@ -218,7 +220,7 @@ def test_recompute_equals_per_step_graph():
         _, env_a, _, ga, _ = run_isar(second_order=order, path="recompute", success_at=None)
         _, env_b, _, gb, _ = run_isar(second_order=order, path="per-step", success_at=None)
         assert env_a.actions == env_b.actions and len(ga) == len(gb) == 5
-        for a, b in zip(ga, gb):
+        for a, b in zip(ga, gb, strict=False):
             assert torch.allclose(flat(a), flat(b), rtol=1e-9, atol=1e-12)
 
 
@@ -250,9 +252,9 @@ def test_isar_70_step_episode_schedule_and_theta_reset():
     assert rec["inner_updates"] == 9 and rec["adaptive_updates"] == 5
     assert len(after_step) == 5
     names = [n for n, _ in shared.named_parameters()]
-    for theta, phi in zip(w.theta_log, after_step):
-        assert all(torch.equal(theta[n], p) for n, p in zip(names, phi))
-    assert not all(torch.equal(a, b) for a, b in zip(before, after_step[0]))
+    for theta, phi in zip(w.theta_log, after_step, strict=False):
+        assert all(torch.equal(theta[n], p) for n, p in zip(names, phi, strict=False))
+    assert not all(torch.equal(a, b) for a, b in zip(before, after_step[0], strict=False))
 
 
 # -- SAVN ----------------------------------------------------------------------------------
@@ -279,7 +281,8 @@ def savn_ref(model, tcn, phi, lam_params, env, k, alpha, cfg, fixed=None, create
         l_int = torch.func.functional_call(tcn, lam_params, (rows,))
         gs = torch.autograd.grad(l_int, [theta[m] for m in names], create_graph=create_graph,
                                  retain_graph=True, allow_unused=True)
-        theta = {m: theta[m] if g is None else theta[m] - alpha * g for m, g in zip(names, gs)}
+        theta = {m: theta[m] if g is None else theta[m] - alpha * g
+                 for m, g in zip(names, gs, strict=True)}
     lg, vs = torch.stack(lg_all), torch.stack(v_all)
     rews = [-0.01] * T
     if env.success_at == T:
@@ -303,8 +306,8 @@ def test_savn_episode_meta_gradient_matches_finite_differences():
     assert rec["length"] == 10 and rec["inner_updates"] == 2 and len(grads) == 1
     pnames = [n for n, _ in model.named_parameters()]
     lnames = [n for n, _ in tcn.named_parameters()]
-    impl = {**{("P", n): g for n, g in zip(pnames, grads[0][:len(pnames)])},
-            **{("L", n): g for n, g in zip(lnames, grads[0][len(pnames):])}}
+    impl = {**{("P", n): g for n, g in zip(pnames, grads[0][:len(pnames)], strict=False)},
+            **{("L", n): g for n, g in zip(lnames, grads[0][len(pnames):], strict=False)}}
     assert flat([impl[("L", n)] for n in lnames]).norm() > 0  # Lambda learns (2nd order)
     p0 = {("P", n): v.detach().clone() for n, v in model.named_parameters()}
     p0.update({("L", n): v.detach().clone() for n, v in tcn.named_parameters()})

@@ -16,8 +16,14 @@ from geonav.policy.encoders import build_frozen_encoder
 from geonav.policy.evaluation import RandomAgent, eval_starts, evaluate
 from geonav.policy.isar import train_isar
 from geonav.policy.meta import MetaTrainer
-from geonav.policy.meta_config import CurriculumConfig, ISARConfig, MetaConfig, SAVNConfig, \
-    base_config, kl_weight
+from geonav.policy.meta_config import (
+    CurriculumConfig,
+    ISARConfig,
+    MetaConfig,
+    SAVNConfig,
+    base_config,
+    kl_weight,
+)
 from geonav.policy.savn import train_savn
 from geonav.policy.testing import _scene, tiny_env_factory, tiny_net
 from geonav.testing import textured_scene, tiny_taskset
@@ -65,7 +71,7 @@ def test_meta_training_order_and_one_update_per_batch(algo, workers):
     for u in t.update_log:  # psi <- psi - eta * sum_i g_i, exactly one step per batch
         total = [sum(g[j] for g in u["grads"]) for j in range(len(u["psi_before"]))]
         assert any(float(x.abs().sum()) > 0 for x in total)
-        for before, after, g in zip(u["psi_before"], u["psi_after"], total):
+        for before, after, g in zip(u["psi_before"], u["psi_after"], total, strict=False):
             assert torch.allclose(after, before - 1e-2 * g, atol=1e-7)
     # task gradients start from psi: the two tasks of a batch see the same parameters
     assert len(t.update_log[0]["grads"]) == 2

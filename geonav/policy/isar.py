@@ -31,8 +31,14 @@ import torch
 from geonav.policy.a3c import A3CTrainer, A3CWorker
 from geonav.policy.agent import choose_action, obs_inputs
 from geonav.policy.evaluation import spl
-from geonav.policy.functional import Segment, grads_of, load_values, segment_loss, sgd_step, \
-    teacher_kl
+from geonav.policy.functional import (
+    Segment,
+    grads_of,
+    load_values,
+    segment_loss,
+    sgd_step,
+    teacher_kl,
+)
 from geonav.policy.losses import actor_critic_loss
 from geonav.policy.meta_config import ISARConfig
 from geonav.policy.model import detach_state

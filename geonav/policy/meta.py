@@ -134,8 +134,8 @@ class MetaTrainer(A3CTrainer):
                            checkpoint_every=0, torch_threads=m.torch_threads)
         super().__init__(env_factory, net_cfg, base_cfg, **kwargs)
         self.n_tasks = len(self.env.unwrapped.tasks)
-        self.meta_updates = int((self.ckpt.meta.get("meta_updates", 0)
-                                 if self.ckpt is not None else 0))
+        self.meta_updates = int(self.ckpt.meta.get("meta_updates", 0)
+                                 if self.ckpt is not None else 0)
         self.keep_task_grads = keep_task_grads
         self.update_log: list[dict[str, Any]] = []
         """Per meta update: the task indices of the batch (and, with ``keep_task_grads``,

@@ -31,8 +31,14 @@ from torch.nn import functional as F
 from geonav.policy.a3c import A3CTrainer, A3CWorker
 from geonav.policy.agent import choose_action, obs_inputs
 from geonav.policy.evaluation import spl
-from geonav.policy.functional import Segment, grads_of, load_values, segment_forward, sgd_step, \
-    teacher_kl
+from geonav.policy.functional import (
+    Segment,
+    grads_of,
+    load_values,
+    segment_forward,
+    sgd_step,
+    teacher_kl,
+)
 from geonav.policy.isar import MetaWorkerMixin, gradient_path
 from geonav.policy.losses import actor_critic_loss
 from geonav.policy.meta_config import SAVNConfig
