@@ -181,7 +181,7 @@ def _comparison(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
 def _with_parents(cfg: ExperimentConfig, root: Path, stage: str, s: dict[str, Any]
                   ) -> ConvergenceResult:
     """e* of the final stage plus all episodes of the stages it started from."""
-    extra = 0
+    extra = int(s["result"].get("episodes_before_metrics", 0))
     parent = cfg.stages[stage].init
     while parent is not None:
         r = json.loads((unit_dir(root, Unit(parent, s["seed"])) / RESULT).read_text())

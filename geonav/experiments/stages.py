@@ -66,6 +66,38 @@ class ProgressFile:
         os.replace(tmp, self.path)
 
 
+class ConvergenceStop:
+    """Stops a training stage once the convergence criterion has been confirmed
+    (e* found and held for W more episodes), so budgets are upper bounds."""
+
+    def __init__(self, criterion: Any, successes: list[bool] | None = None) -> None:
+        self.criterion = criterion
+        self.successes = list(successes or [])
+        self.converged_at: int | None = None
+
+    def on_train_start(self, info: dict[str, Any]) -> None:
+        pass
+
+    def on_episode(self, record: dict[str, Any]) -> bool | None:
+        from geonav.experiments.convergence import episodes_to_convergence
+
+        self.successes.append(bool(record.get("success")))
+        w = self.criterion.window
+        # check once per W/10 episodes: cheap and at most W/10 episodes late
+        if len(self.successes) % max(1, w // 10) == 0:
+            conv = episodes_to_convergence(self.successes, self.criterion)
+            if conv.episodes is not None:
+                self.converged_at = conv.episodes
+                return False
+        return None
+
+    def on_checkpoint(self, path: Any, episodes: int) -> None:
+        pass
+
+    def on_train_end(self, result: Any) -> None:
+        pass
+
+
 def _load_init(model: Any, path: str | None, env: Any) -> None:
     """Copy the weights of ``path`` into ``model`` after checking they fit ``env``."""
     if not path:
@@ -81,17 +113,11 @@ def _load_init(model: Any, path: str | None, env: Any) -> None:
 def _train_a3c(p: dict[str, Any], env_factory: Any, callbacks: list[Any],
                resume: str | None) -> tuple[Any, int, str]:
     from geonav.policy.a3c import A3CTrainer
-    from geonav.policy.config import A3CConfig, NetConfig, from_dict
 
-    opts = dict(p["options"])
-    net_opts = {k: opts.pop(k) for k in list(opts) if k in NetConfig.__dataclass_fields__}
-    cfg = from_dict(A3CConfig, {**opts, "episodes": p["episodes"], "workers": p["workers"],
-                                "seed": p["seed"]})
-    net = from_dict(NetConfig, net_opts) if net_opts else None
-    if resume is None and p.get("init_checkpoint"):
-        from geonav.policy.checkpoint import load_checkpoint
-
-        net = load_checkpoint(p["init_checkpoint"]).net_config
+    cfg, net, rest = _algo_cfg(p)
+    if rest:
+        raise ConfigError(f"stage {p.get('stage')!r}: unknown a3c option(s) {sorted(rest)}")
+    net = _init_net(p, net, resume)
     t = A3CTrainer(env_factory, net, cfg, out_dir=p["out_dir"], resume=resume,
                    callbacks=callbacks, tensorboard=False)
     if resume is None:
@@ -107,6 +133,10 @@ def _algo_cfg(p: dict[str, Any]) -> tuple[Any, Any, dict[str, Any]]:
 
     opts = dict(p["options"])
     net_opts = {k: opts.pop(k) for k in list(opts) if k in NetConfig.__dataclass_fields__}
+    if net_opts and "obs_size_px" not in net_opts:
+        from geonav.tasks import TaskSet
+
+        net_opts["obs_size_px"] = TaskSet.load(p["tasks"]).camera.size_px
     known = BASE_CONFIGS[p["algo"]].__dataclass_fields__
     base_opts = {k: opts.pop(k) for k in list(opts) if k in known}
     cfg = base_config(p["algo"], {**base_opts, "episodes": p["episodes"],
@@ -216,12 +246,30 @@ def execute_stage(p: dict[str, Any]) -> dict[str, Any]:
     if resume is not None:
         truncate_metrics(out / "metrics.csv", resume)
     env_factory = EnvFactory(p["scene"], p["tasks"])
-    callbacks = [ProgressFile(out / "progress.json")]
+    callbacks: list[Any] = [ProgressFile(out / "progress.json")]
+    p = dict(p, options=dict(p["options"]))
+    if p["options"].pop("stop_at_convergence", False) and p["mode"] != "curriculum":
+        from geonav.experiments.convergence import ConvergenceCriterion
+        from geonav.policy.callbacks import read_metrics
+
+        before = [bool(r["success"]) for r in read_metrics(out / "metrics.csv")] \
+            if resume is not None and (out / "metrics.csv").exists() else []
+        callbacks.append(ConvergenceStop(ConvergenceCriterion(**p["convergence"]), before))
     model, episodes, checkpoint = TRAINERS[key](p, env_factory, callbacks, resume)
-    evaluation, trajectories = evaluate_unit(model, checkpoint, env_factory, p)
+    metrics, offset, eval_factory = out / "metrics.csv", 0, env_factory
+    if p["mode"] == "curriculum":
+        # Convergence is judged on the last (lowest) stage; the earlier stages of the
+        # unit count as episodes spent before it.
+        stages = json.loads((out / "curriculum.json").read_text())["stages"]
+        last = stages[-1]
+        metrics = out / f"stage_{len(stages) - 1}_{float(last['alt_m']):g}m" / "metrics.csv"
+        offset = sum(int(s["episodes"]) for s in stages[:-1])
+        eval_factory = EnvFactory(p["scene"], p["tasks"], alt_m=float(last["alt_m"]))
+    evaluation, trajectories = evaluate_unit(model, checkpoint, eval_factory, p)
     return dict(stage=p["stage"], seed=p["seed"], mode=p["mode"], algo=p["algo"],
-                episodes=int(episodes), checkpoint=checkpoint, metrics=str(out / "metrics.csv"),
-                scene=p["scene"], tasks=p["tasks"], eval=evaluation, trajectories=trajectories)
+                episodes=int(episodes), episodes_before_metrics=offset, checkpoint=checkpoint,
+                metrics=str(metrics), scene=p["scene"], tasks=p["tasks"], eval=evaluation,
+                trajectories=trajectories)
 
 
 def truncate_metrics(metrics_csv: Path, checkpoint: str) -> None:

@@ -7,7 +7,9 @@ Importing this package is cheap; the submodules import torch. Main entry points:
 * :class:`geonav.policy.a3c.A3CTrainer` / :func:`geonav.policy.a3c.train_a3c`;
 * :func:`geonav.policy.checkpoint.load_checkpoint` and ``save_checkpoint``;
 * :func:`geonav.policy.evaluation.evaluate`;
-* :class:`geonav.policy.inference.PolicyRunner` (deployment).
+* :class:`geonav.policy.inference.PolicyRunner` (deployment);
+* :class:`geonav.policy.isar.ISARTrainer`, :class:`geonav.policy.savn.SAVNTrainer`,
+  :class:`geonav.policy.meta.MetaTrainer` and :func:`geonav.policy.curriculum.run_curriculum`.
 """
 
 from __future__ import annotations
@@ -26,6 +28,10 @@ _EXPORTS = {
     "save_checkpoint": "geonav.policy.checkpoint",
     "evaluate": "geonav.policy.evaluation",
     "PolicyRunner": "geonav.policy.inference",
+    "ISARTrainer": "geonav.policy.isar",
+    "SAVNTrainer": "geonav.policy.savn",
+    "MetaTrainer": "geonav.policy.meta",
+    "run_curriculum": "geonav.policy.curriculum",
 }
 
 __all__ = sorted(_EXPORTS)

@@ -208,6 +208,13 @@ class MetaTrainer(A3CTrainer):
         if self.keep_task_grads:
             entry["psi_before"] = [p.detach().clone() for p in psi]
             entry["grads"] = [[x.clone() for x in g] for g in grads]
+        if self.meta_cfg.meta_max_grad_norm > 0:
+            norm = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g)
+                                                         for g in total]))
+            entry["grad_norm"] = float(norm)
+            scale = self.meta_cfg.meta_max_grad_norm / (float(norm) + 1e-6)
+            if scale < 1.0:
+                torch._foreach_mul_(total, scale)
         for p, g in zip(psi, total, strict=True):
             p.grad = g
         self.optimizer.step()

@@ -120,6 +120,9 @@ class MetaConfig:
     """eta: learning rate of the meta update psi <- psi - eta * sum_i g_i."""
     meta_optimizer: str = "sgd"
     """'sgd' (Eq. 1) or 'adam' (a reported option)."""
+    meta_max_grad_norm: float = 0.0
+    """Clip the norm of sum_i g_i before the meta update (0: off, as Eq. 1 writes; the
+    unclipped sum of B tasks' episode gradients can be large enough to diverge)."""
     seed: int = 0
     """Seed of torch, numpy and the environments."""
     checkpoint_every: int = 500
