@@ -134,3 +134,22 @@ def test_curriculum_advances_on_criterion_and_budget_and_decays_the_teacher(scen
                                           teacher="none"),
                          out_dir=tmp_path / "b", criterion=hard)
     assert [(s.episodes, s.converged_at) for s in res.stages] == [(5, None), (5, None)]
+
+
+def test_meta_update_clip_scales_the_summed_gradient():
+    factory = multi_task_factory(3)
+    meta = MetaConfig(episodes=4, workers=0, batch_tasks=2, meta_lr=1e-2, seed=0,
+                      meta_max_grad_norm=1e-3)
+    t = MetaTrainer(factory, tiny_net(), "a3c", base_config("a3c", {}), meta,
+                    keep_task_grads=True)
+    t.train()
+    for u in t.update_log:
+        total = [sum(g[j] for g in u["grads"]) for j in range(len(u["psi_before"]))]
+        norm = float(torch.sqrt(sum((x.double() ** 2).sum() for x in total)))
+        assert u["grad_norm"] == pytest.approx(norm, rel=1e-4) and norm > 1e-3
+        scale = 1e-3 / (norm + 1e-6)
+        step = [float((b - a).double().pow(2).sum()) for b, a in
+                zip(u["psi_before"], u["psi_after"], strict=True)]
+        assert sum(step) ** 0.5 == pytest.approx(1e-2 * 1e-3, rel=1e-3)  # clipped step
+        for before, after, g in zip(u["psi_before"], u["psi_after"], total, strict=True):
+            assert torch.allclose(after, before - 1e-2 * scale * g, atol=1e-9)
