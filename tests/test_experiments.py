@@ -167,6 +167,11 @@ def test_resume_after_kill_skips_finished_units(tmp_path):
     rows = (unfinished[0] / "metrics.csv").read_text().strip().splitlines()
     episodes = [int(r.split(",")[0]) for r in rows[1:]]
     assert episodes[-1] == 150 and len(set(episodes)) == len(episodes)
+    # training time accumulates across the resume instead of restarting at zero
+    header = rows[0].split(",")
+    col = header.index("elapsed_s")
+    elapsed = [float(r.split(",")[col]) for r in rows[1:]]
+    assert all(b >= a for a, b in zip(elapsed, elapsed[1:]))
 
 
 def test_config_errors(tmp_path):

@@ -23,12 +23,12 @@ from geonav.experiments.runner import RESULT, Unit, unit_dir
 
 
 def read_success(metrics_csv: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(success, wall_s, length, shortest_path) per episode in completion order."""
+    """(success, elapsed_s, length, shortest_path) per episode in completion order."""
     succ, wall, length, short = [], [], [], []
     with open(metrics_csv, newline="") as f:
         for row in csv.DictReader(f):
             succ.append(float(row["success"]) > 0.5)
-            wall.append(float(row.get("wall_s") or "nan"))
+            wall.append(float(row.get("elapsed_s") or "nan"))
             length.append(float(row.get("length") or "nan"))
             short.append(float(row.get("shortest_path") or "nan"))
     return np.array(succ, bool), np.array(wall), np.array(length), np.array(short)

@@ -433,6 +433,7 @@ class A3CTrainer:
         """Run until ``cfg.episodes`` episodes in total; write the final checkpoint."""
         cbs = self._prepare_out_dir() + self.callbacks
         t0 = time.perf_counter()
+        self._t_start, self._elapsed_base = t0, self._resumed_elapsed()
         result = TrainResult(self.model, self.start_episode, 0, 0.0, self.start_episode,
                              out_dir=self.out_dir)
         for cb in cbs:
@@ -464,12 +465,28 @@ class A3CTrainer:
         return result
 
     _final_rng: dict[str, Any] | None = None
+    _t_start: float = 0.0
+    _elapsed_base: float = 0.0
+
+    def _resumed_elapsed(self) -> float:
+        """Training seconds already spent by the run being resumed (0 for a new run)."""
+        if self.ckpt is None or self.out_dir is None:
+            return 0.0
+        metrics = self.out_dir / "metrics.csv"
+        if not metrics.exists():
+            return 0.0
+        from geonav.policy.callbacks import read_metrics
+
+        done = [r for r in read_metrics(metrics)
+                if r.get("elapsed_s") is not None and r["episode"] <= self.start_episode]
+        return float(done[-1]["elapsed_s"]) if done else 0.0
 
     def _on_record(self, rec: dict[str, Any], cbs: list[Callback], result: TrainResult,
                    rng: Callable[[], dict[str, Any] | None]) -> bool:
         """Handle one finished episode in the main process; False asks to stop."""
         self.episodes_done += 1
         result.env_steps += int(rec["length"])
+        rec["elapsed_s"] = round(self._elapsed_base + time.perf_counter() - self._t_start, 3)
         if self.keep_records:
             result.records.append(rec)
         go_on = True

@@ -16,7 +16,9 @@ log = logging.getLogger(__name__)
 
 METRIC_FIELDS = ("episode", "worker", "task", "task_index", "return", "length", "success",
                  "spl", "collisions", "shortest_path", "policy_loss", "value_loss", "entropy",
-                 "env_steps", "wall_s")
+                 "env_steps", "wall_s", "elapsed_s")
+"""``wall_s``: the episode's own duration in its worker; ``elapsed_s``: seconds of training
+since the run started (across resumes) when the episode was recorded."""
 
 
 class Callback:
