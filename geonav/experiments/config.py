@@ -44,7 +44,12 @@ parent's unit of the same seed.
 from __future__ import annotations
 
 import dataclasses
-import tomllib
+import sys
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - Python 3.10
+    import tomli as tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any

@@ -56,7 +56,10 @@ class EnvFactory:
 def _load_toml(path: str | None) -> dict[str, Any]:
     if path is None:
         return {}
-    import tomllib
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # pragma: no cover - Python 3.10
+        import tomli as tomllib  # type: ignore[no-redef]
 
     try:
         with open(path, "rb") as f:
