@@ -28,7 +28,7 @@ def fly_result(cfg: ExperimentConfig, root: Path, progress: Any = None) -> dict[
     """Dry-run flight of ``cfg.flight['stage']`` (seed ``cfg.flight['seed']``); returns a summary.
 
     ``[flight]`` keys: stage, seed, task_index, autopilot ("px4" | "ardupilot"),
-    backend ("pymavlink" | "mavsdk"), start_seed.
+    backend ("pymavlink" | "mavsdk"), start_seed, sample (sampled actions, default true).
     """
     from geonav.mavlink_bridge.flight import fly
     from geonav.scene import Scene
@@ -52,14 +52,22 @@ def fly_result(cfg: ExperimentConfig, root: Path, progress: Any = None) -> dict[
     rng = np.random.default_rng(int(fl.get("start_seed", 0)))
     start = starts[int(rng.integers(len(starts)))]
     out = root / "flight"
+    from geonav.policy.inference import PolicyRunner
+
+    # Sampled actions by default, as the evaluation protocol (ALGORITHMS.md (f)); a greedy
+    # recurrent policy can lock into a loop. `sample = false` flies the argmax.
+    sample = bool(fl.get("sample", True))
+    policy = PolicyRunner.from_checkpoint(result["checkpoint"], greedy=not sample,
+                                          seed=int(fl.get("start_seed", 0)))
     flight = fly(
-        result["checkpoint"], scene, target_cell=task.target_cell, start_cell=start,
+        policy, scene, target_cell=task.target_cell, start_cell=start,
         dry_run=True, autopilot=fl.get("autopilot", "px4"),
         backend=fl.get("backend", "pymavlink"), out_dir=out, progress=progress,
         region_m=task.region_m, step_m=task.step_m, alt_m=task.alt_m,
         max_steps=task.max_steps, max_alt_m=max(120.0, task.alt_m + 20.0),
     )
     summary = dict(stage=stage, seed=seed, task=task.name, alt_m=task.alt_m,
+                   actions="sampled" if sample else "greedy",
                    start_cell=list(start), target_cell=list(task.target_cell),
                    shortest_path=int(tm.dist_to_target[start]), success=flight.success,
                    reason=flight.reason, steps=flight.steps,
@@ -76,7 +84,7 @@ def fly_result(cfg: ExperimentConfig, root: Path, progress: Any = None) -> dict[
         rel = Path(summary["track_png"]).relative_to(root) if summary["track_png"] else None
         text += (
             "\n## Flight (MAVLink emulator)\n\n"
-            f"The final `{stage}` policy (seed {seed}) flew task `{task.name}` at "
+            f"The final `{stage}` policy (seed {seed}, {summary['actions']} actions) flew task `{task.name}` at "
             f"{task.alt_m:g} m through the MAVLink bridge against the "
             f"{fl.get('autopilot', 'px4')} emulator ({fl.get('backend', 'pymavlink')} backend), "
             f"from cell {tuple(start)} to {task.target_cell} (shortest path "

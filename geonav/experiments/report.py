@@ -130,6 +130,7 @@ def _comparison(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
              "length / shortest (last W) | SR AUC |", "|---|---|---|---|---|---|---|---|"]
     record: dict[str, Any] = {"name": comp.name, "methods": {}}
     medians: dict[str, float] = {}
+    censored: dict[str, bool] = {}
     for m in comp.methods:
         stats = stats_by_stage[m]
         conv = summarize([s["conv"] for s in stats])
@@ -153,6 +154,7 @@ def _comparison(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
             f"{'n/a' if auc is None else f'{auc:.2f}'} |")
         if conv["median"] is not None:
             medians[m] = (conv_total or conv)["median"]
+            censored[m] = bool((conv_total or conv)["median_censored"])
         record["methods"][m] = dict(convergence=conv, convergence_incl_parents=conv_total,
                                     wall_to_convergence_s=wall, final_success=sr, final_spl=spl,
                                     length_over_shortest=ratio, auc=auc,
@@ -163,12 +165,20 @@ def _comparison(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
     if len(comp.methods) >= 2 and all(m in medians for m in comp.methods[:2]):
         a, b = comp.methods[:2]
         ours = medians[b] / medians[a] if medians[a] else math.nan
-        text = f"Ratio {b} / {a} (median episodes): **{ours:.2f}**"
+        if censored[a] and censored[b]:
+            text = (f"Ratio {b} / {a}: **n/a**, neither converged within its budget "
+                    "(compare the curves and the SR AUC)")
+        elif censored[a]:
+            text = f"Ratio {b} / {a} (median episodes): **<= {ours:.2f}** ({a} censored)"
+        elif censored[b]:
+            text = f"Ratio {b} / {a} (median episodes): **>= {ours:.2f}** ({b} censored)"
+        else:
+            text = f"Ratio {b} / {a} (median episodes): **{ours:.2f}**"
         if a in comp.paper and b in comp.paper:
             text += f"; the paper's: {comp.paper[b] / comp.paper[a]:.2f} " \
                     f"({comp.paper[b]:g} vs {comp.paper[a]:g} episodes)"
-        lines += [text + ". Censored medians make the ratio a bound.", ""]
-        record["ratio"] = ours
+        lines += [text + ".", ""]
+        record["ratio"] = None if censored[a] and censored[b] else ours
     png = _plot_curves(cfg, comp, root, stats_by_stage)
     lines += [f"![learning curves]({png.name})", ""]
     traj = _plot_trajectories(cfg, comp, root, stats_by_stage, scenes)
