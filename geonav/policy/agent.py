@@ -91,11 +91,17 @@ class Agent:
         self.target = None
 
     @torch.no_grad()
-    def step_inputs(self, x: torch.Tensor, target: torch.Tensor, greedy: bool | None = None
-                    ) -> int:
-        """Advance one step from prepared inputs; returns the action."""
-        logits, _, self.state = self.model(x.unsqueeze(0).unsqueeze(0), target.unsqueeze(0),
-                                           self.state)
+    def step_inputs(self, x: torch.Tensor, target: torch.Tensor, greedy: bool | None = None,
+                    prev: torch.Tensor | None = None) -> int:
+        """Advance one step from prepared inputs; returns the action.
+
+        ``prev`` is the previous-altitude view for a network with the extra input slot
+        (``NetConfig.prev_view_input``); None zero-fills that slot.
+        """
+        args: tuple[Any, ...] = (x.unsqueeze(0).unsqueeze(0), target.unsqueeze(0), self.state)
+        if prev is not None:
+            args = (*args, prev.unsqueeze(0).unsqueeze(0))
+        logits, _, self.state = self.model(*args)
         return choose_action(logits[0, 0], self.greedy if greedy is None else greedy, self.rng)
 
     def act(self, obs: dict[str, np.ndarray], info: dict[str, Any] | None = None,

@@ -95,6 +95,8 @@ def add_parser(subparsers: Any) -> None:
                    help="observation side in pixels (default: the task set's camera)")
     p.add_argument("--encoder", choices=ENCODERS, default=None, help=nh["encoder"])
     p.add_argument("--encoder-weights", default=None, metavar="PATH", help=nh["encoder_weights"])
+    p.add_argument("--prev-view-input", action="store_true", default=None,
+                   help=nh.get("prev_view_input"))
     p.add_argument("--t-max", type=int, default=None, help=ah["t_max"])
     p.add_argument("--lr", type=float, default=None, help=ah["lr"])
     p.add_argument("--max-steps", type=int, default=None, help="episode cap override")
@@ -136,7 +138,8 @@ def resolve_train_configs(args: argparse.Namespace) -> tuple[Any, Any]:
     net_d = dict(toml.get("net", {}))
     a3c_d = dict(toml.get("a3c", {}))
     for key, val in (("encoder", args.encoder), ("encoder_weights", args.encoder_weights),
-                     ("obs_size_px", args.obs_size)):
+                     ("obs_size_px", args.obs_size),
+                     ("prev_view_input", getattr(args, "prev_view_input", None) or None)):
         if val is not None:
             net_d[key] = val
     for key, val in (("episodes", args.episodes), ("workers", args.workers),

@@ -39,6 +39,12 @@ class NetConfig:
     """Number of discrete actions (GeoNavEnv: forward, right, left, backward)."""
     random_encoder_seed: int = 0
     """Seed of the frozen random CNN's weights (encoder='random')."""
+    prev_view_input: bool = False
+    """Add the extra input slot E(o^prev) (ALGORITHMS.md (e), option B): the encoder features
+    of the view at the same cell at the previous curriculum stage's altitude, embedded by
+    its own linear layer to embed_dim and concatenated before the FC layer. Zero-filled
+    where no previous-altitude view exists (stage 0, meta-training, flight). Needed by
+    the curriculum's teacher='input'; False keeps the original architecture."""
 
     def __post_init__(self) -> None:
         if self.encoder not in ENCODERS:

@@ -8,7 +8,12 @@ its training episodes (:func:`geonav.experiments.convergence.episodes_to_converg
 or when its budget is spent. With the KL teacher (option A, default) a stage's
 interaction losses gain lambda * KL(pi_T || pi_theta), pi_T being the previous stage's
 frozen final policy fed the render at the same cell at the previous altitude, lambda
-falling linearly from 1 to 0 over the first 25 % of the stage budget.
+falling linearly from 1 to 0 over the first 25 % of the stage budget. With
+``teacher='input'`` (option B) no teacher policy runs: the network's extra input slot
+(``NetConfig.prev_view_input``, required from the first stage on, so the weights
+transfer unchanged) gets the view at the same cell at the previous stage's altitude
+in the stages that have a teacher, and is zero-filled in the others (ISAR and SAVN;
+A3C is refused).
 
 Run folder: ``stage_<i>_<alt>m/`` per stage (the trainer's own layout), plus
 ``curriculum.json`` (stages done, their episodes and checkpoints) and
@@ -63,6 +68,9 @@ class StageResult:
     checkpoint: str
     converged_at: int | None
     teacher: str | None
+    """The KL teacher's checkpoint (option A), else None."""
+    prev_view_alt_m: float | None = None
+    """The altitude of the extra slot's view (option B), else None (zero-filled)."""
 
 
 @dataclass
@@ -87,6 +95,26 @@ def trainer_class(algo: str) -> type:
     return classes[algo]
 
 
+def _check_input_teacher(algo: str, init: str | None, net_cfg: NetConfig | None) -> None:
+    """teacher='input' needs ISAR or SAVN and a network with the extra slot from stage 0."""
+    from geonav.policy.checkpoint import load_checkpoint
+
+    if algo not in ("isar", "savn"):
+        raise ConfigError(f"curriculum teacher='input' (the extra input slot) is implemented "
+                          f"for isar and savn, not {algo!r}")
+    fix = ("meta-train (or train) the starting policy with prev_view_input = true in the "
+           "[net] table (geonav meta-train/train --prev-view-input), so the slot exists "
+           "from stage 0")
+    if init is not None:
+        if not load_checkpoint(init).net_config.prev_view_input:
+            raise ConfigError(f"curriculum teacher='input' needs an init checkpoint with the "
+                              f"extra input slot, but {init} has none; {fix}")
+    elif net_cfg is None or not net_cfg.prev_view_input:
+        raise ConfigError("curriculum teacher='input' needs a network with the extra input "
+                          "slot: set prev_view_input = true in the [net] table "
+                          "(--prev-view-input)")
+
+
 def run_curriculum(env_factory: Any, init: str | None, algo: str, base_cfg: A3CConfig,
                    cfg: CurriculumConfig | None = None, *, out_dir: str | os.PathLike[str],
                    criterion: Any = None, net_cfg: NetConfig | None = None,
@@ -109,7 +137,7 @@ def run_curriculum(env_factory: Any, init: str | None, algo: str, base_cfg: A3CC
     """
     from geonav.experiments.convergence import ConvergenceCriterion
     from geonav.policy.checkpoint import check_compatible, load_checkpoint
-    from geonav.policy.teacher import TeacherSpec
+    from geonav.policy.teacher import PrevViewSpec, TeacherSpec
 
     cfg = cfg if cfg is not None else CurriculumConfig()
     criterion = criterion if criterion is not None else ConvergenceCriterion()
@@ -121,6 +149,8 @@ def run_curriculum(env_factory: Any, init: str | None, algo: str, base_cfg: A3CC
         "criterion": {"window": criterion.window, "threshold": criterion.threshold,
                       "hold": criterion.hold}, "base": to_dict(base_cfg)}
     cls = trainer_class(algo)
+    if cfg.teacher == "input":
+        _check_input_teacher(algo, init, net_cfg)
     prev_ckpt, prev_alt = init, cfg.first_teacher_alt_m
     model = None
     result = CurriculumResult(None)
@@ -136,14 +166,18 @@ def run_curriculum(env_factory: Any, init: str | None, algo: str, base_cfg: A3CC
         if resume is None and stage_dir.exists():
             shutil.rmtree(stage_dir)  # killed before its first checkpoint: start again
         teacher = None
+        prev_view = None
         if cfg.teacher_at(i):
             if prev_ckpt is None or prev_alt is None:
                 raise ConfigError(f"stage {i} ({alt:g} m) needs a teacher, but there is no "
                                   "previous policy with a known altitude (pass init and "
                                   "first_teacher_alt_m, or teacher_levels_m without it)")
-            teacher = TeacherSpec(str(prev_ckpt), replace(env_factory, alt_m=float(prev_alt),
-                                                          max_steps=cfg.max_steps),
-                                  cfg.stage_episodes, cfg.teacher_decay_fraction)
+            prev_factory = replace(env_factory, alt_m=float(prev_alt), max_steps=cfg.max_steps)
+            if cfg.teacher == "input":
+                prev_view = PrevViewSpec(prev_factory, float(prev_alt))
+            else:
+                teacher = TeacherSpec(str(prev_ckpt), prev_factory, cfg.stage_episodes,
+                                      cfg.teacher_decay_fraction)
         stop = ConvergenceStop(criterion)
         kwargs: dict[str, Any] = {"out_dir": stage_dir, "resume": resume,
                                   "callbacks": [stop, *callbacks], "mp_context": mp_context}
@@ -155,6 +189,8 @@ def run_curriculum(env_factory: Any, init: str | None, algo: str, base_cfg: A3CC
             teacher = None
         if teacher is not None:
             kwargs["teacher"] = teacher
+        if prev_view is not None:
+            kwargs["prev_view"] = prev_view
         stage_net = net_cfg
         if resume is None and prev_ckpt is not None:
             stage_net = load_checkpoint(prev_ckpt).net_config
@@ -177,7 +213,8 @@ def run_curriculum(env_factory: Any, init: str | None, algo: str, base_cfg: A3CC
         res = trainer.train()
         model = res.model
         stage = StageResult(alt, res.episodes, str(res.checkpoint), stop.converged_at,
-                            None if teacher is None else str(teacher.checkpoint))
+                            None if teacher is None else str(teacher.checkpoint),
+                            None if prev_view is None else prev_view.alt_m)
         result.stages.append(stage)
         state["stages"].append(stage.__dict__)
         for name in ("latest.pt", "final.pt"):

@@ -36,9 +36,15 @@ Params = dict[str, torch.Tensor]
 @dataclass
 class Segment(Rollout):
     """A stored segment: start state, target, views, actions, rewards, and per step the
-    teacher's log-probabilities (empty without a teacher)."""
+    teacher's log-probabilities (empty without a teacher) and the previous-altitude views
+    of the extra input slot (empty: zero-filled)."""
 
     teacher_logp: list[torch.Tensor] = field(default_factory=list)
+    prev_views: list[torch.Tensor] = field(default_factory=list)
+
+    def prev(self) -> torch.Tensor | None:
+        """(T, ...) previous-altitude views, or None (zero-filled slot / no slot)."""
+        return torch.stack(self.prev_views) if self.prev_views else None
 
 
 @dataclass
@@ -72,7 +78,8 @@ def capture_hidden(model: ActorCritic) -> Iterator[list[torch.Tensor]]:
 
 
 def segment_forward(model: ActorCritic, params: Params | None, views: torch.Tensor,
-                    target: torch.Tensor, state: State, hidden: bool = False
+                    target: torch.Tensor, state: State, hidden: bool = False,
+                    prev: torch.Tensor | None = None
                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, State]:
     """T steps of one episode in one call.
 
@@ -82,11 +89,14 @@ def segment_forward(model: ActorCritic, params: Params | None, views: torch.Tens
         state: the state before the first step.
         params: name -> tensor for ``functional_call`` (None: the module's own).
         hidden: also return the per-step LSTM outputs.
+        prev: (T, ...) previous-altitude views for the extra slot (None: zero-filled).
 
     Returns:
         logits (T, A), values (T,), h (T, lstm_size) or None, end state.
     """
-    args = (views.unsqueeze(1), target.unsqueeze(0), state)
+    args: tuple[Any, ...] = (views.unsqueeze(1), target.unsqueeze(0), state)
+    if prev is not None:
+        args = (*args, prev.unsqueeze(1))
     with capture_hidden(model) if hidden else contextlib.nullcontext([]) as seen:
         if params is None:
             logits, values, end = model(*args)
@@ -109,7 +119,8 @@ def segment_loss(model: ActorCritic, params: Params | None, seg: Segment, bootst
     plus ``kl_weight`` * KL to the teacher when the segment holds teacher log-probs."""
     views = torch.stack(seg.views)
     logits, values, hs, end = segment_forward(
-        model, params, views, seg.target, seg.start_state if state is None else state, hidden)
+        model, params, views, seg.target, seg.start_state if state is None else state, hidden,
+        seg.prev())
     terms = actor_critic_loss(logits, values, seg.actions, seg.rewards, bootstrap, loss_cfg)
     loss = terms.total
     if kl_weight > 0.0 and seg.teacher_logp:

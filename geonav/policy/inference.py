@@ -9,6 +9,12 @@ The runner keeps the LSTM state and previous action probabilities across
 calls; :meth:`reset` starts a new episode. Actions are greedy by default and
 come from the same :class:`geonav.policy.agent.Agent` code path as
 :func:`geonav.policy.evaluation.evaluate`, so they match greedy evaluation.
+
+A policy with the curriculum's extra input slot (``NetConfig.prev_view_input``,
+ALGORITHMS.md (e) option B) takes the view at the same place at the previous stage's
+altitude. Flight has no such view: unless :meth:`PolicyRunner.act` is given
+``prev_image``, the slot is **zero-filled**, as in stage 0 and in evaluation, which
+differs from what later curriculum stages were trained with.
 """
 
 from __future__ import annotations
@@ -57,6 +63,12 @@ class PolicyRunner:
                    threads)
 
     @property
+    def prev_view_input(self) -> bool:
+        """True when the policy has the extra previous-altitude input slot (zero-filled
+        unless ``act`` gets ``prev_image``)."""
+        return bool(self.agent.model.cfg.prev_view_input)
+
+    @property
     def action_meanings(self) -> list[str]:
         return list(self.meta.get("action_meanings", []))
 
@@ -74,17 +86,31 @@ class PolicyRunner:
                                   f"got {image.shape} {image.dtype}; render at obs_size_px={n}")
         return image
 
-    def act(self, image: np.ndarray, target: np.ndarray, *, greedy: bool | None = None) -> int:
-        """The next action (0 forward/north, 1 right/east, 2 left/west, 3 backward/south)."""
+    def act(self, image: np.ndarray, target: np.ndarray, *, greedy: bool | None = None,
+            prev_image: np.ndarray | None = None) -> int:
+        """The next action (0 forward/north, 1 right/east, 2 left/west, 3 backward/south).
+
+        ``prev_image``: the view at the same place at the previous curriculum altitude, for
+        a policy with the extra input slot (:attr:`prev_view_input`); None (the flight
+        loop) zero-fills the slot. Refused for a policy without the slot.
+        """
         image = self._check("current", image)
         target = self._check("target", target)
+        prev = None
+        if prev_image is not None:
+            if not self.prev_view_input:
+                raise CheckpointError("this policy has no previous-view input slot "
+                                      "(prev_view_input=False); do not pass prev_image")
+            prev = self._check("previous-altitude", prev_image)
         with torch_threads(self.threads):
-            return self._act(image, target, greedy)
+            return self._act(image, target, greedy, prev)
 
-    def _act(self, image: np.ndarray, target: np.ndarray, greedy: bool | None) -> int:
+    def _act(self, image: np.ndarray, target: np.ndarray, greedy: bool | None,
+             prev_image: np.ndarray | None = None) -> int:
         if self._target is None or self._target_image is None or \
                 not np.array_equal(target, self._target_image):
             self._target_image = target.copy()
             self._target = view_input(target, self.agent.frozen)
         x = view_input(image, self.agent.frozen)
-        return self.agent.step_inputs(x, self._target, greedy)
+        prev = None if prev_image is None else view_input(prev_image, self.agent.frozen)
+        return self.agent.step_inputs(x, self._target, greedy, prev)

@@ -18,6 +18,11 @@ of the network loaded with theta and recomputes each segment in one batched call
 its start state, carrying the recomputed (graph) end state into the next segment of
 the window: the same numbers and the same graph as 'per-step', which keeps the graph
 of every acting forward.
+
+With a previous-view source (the curriculum's option B, ``prev_view``), every step's
+network call also gets the view at the current cell at the previous altitude in the
+extra input slot (stored per segment for the recompute); without one the slot, if the
+network has it, is zero-filled.
 """
 
 from __future__ import annotations
@@ -28,6 +33,7 @@ from typing import Any
 
 import torch
 
+from geonav.errors import ConfigError
 from geonav.policy.a3c import A3CTrainer, A3CWorker
 from geonav.policy.agent import choose_action, obs_inputs
 from geonav.policy.evaluation import spl
@@ -44,11 +50,19 @@ from geonav.policy.meta_config import ISARConfig
 from geonav.policy.model import detach_state
 
 
+def prev_args(prev: torch.Tensor | None) -> tuple[torch.Tensor, ...]:
+    """The extra positional argument of a batch-1, one-step forward: () zero-fills."""
+    return () if prev is None else (prev[None, None],)
+
+
 class MetaWorkerMixin:
     """Teacher (curriculum) and instrumentation plumbing shared by SAVN and ISAR workers."""
 
     teacher: Any = None
     teacher_spec: Any = None
+    prev_view: Any = None
+    """A :class:`geonav.policy.teacher.PrevViewSource` (option B) or None (zero-filled)."""
+    prev_view_spec: Any = None
     events: list[tuple[Any, ...]] | None = None
     """When a list, every inner ('inner', t) and adaptive/meta ('adapt', t, n) update is
     appended (tests)."""
@@ -57,6 +71,22 @@ class MetaWorkerMixin:
         spec = (extra or {}).get("teacher")
         self.teacher_spec = spec
         self.teacher = spec.build() if spec is not None else None
+        pspec = (extra or {}).get("prev_view")
+        if pspec is not None and not self.model.cfg.prev_view_input:  # type: ignore[attr-defined]
+            raise ConfigError("a previous-altitude view source needs a network with the extra "
+                              "input slot (NetConfig.prev_view_input = true)")
+        self.prev_view_spec = pspec
+        self.prev_view = pspec.build(self.frozen) if pspec is not None else None  # type: ignore
+
+    def prev_reset(self, info: dict[str, Any]) -> torch.Tensor | None:
+        """New episode: the previous-altitude view at the start cell (None: zero-filled)."""
+        if self.prev_view is None:
+            return None
+        self.prev_view.reset(info)
+        return self.prev_view.view(info)
+
+    def prev_at(self, info: dict[str, Any]) -> torch.Tensor | None:
+        return self.prev_view.view(info) if self.prev_view is not None else None
 
     def lam(self, episode: int) -> float:
         return self.teacher_spec.weight(episode) if self.teacher is not None else 0.0
@@ -96,6 +126,7 @@ class ISARWorker(MetaWorkerMixin, A3CWorker):
         if self.teacher is not None:
             self.teacher.reset(info)
         view, target = obs_inputs(obs, info, self.frozen)
+        prev = self.prev_reset(info)
         self.sync()
         phi = self._params
         theta = dict(zip(self.names, phi, strict=True))
@@ -117,24 +148,29 @@ class ISARWorker(MetaWorkerMixin, A3CWorker):
             for _ in range(cfg.n_steps):
                 if per_step:
                     logits, v, state = torch.func.functional_call(
-                        self.model, theta, (view[None, None], target[None], state), strict=True)
+                        self.model, theta, (view[None, None], target[None], state,
+                                            *prev_args(prev)), strict=True)
                     logits_steps.append(logits[0, 0])
                     values_steps.append(v[0, 0])
                     a = choose_action(logits[0, 0].detach(), False, self.rng)
                 else:
                     with torch.no_grad():
-                        logits, _, state = self.actor_net(view[None, None], tfeat, state)
+                        logits, _, state = self.actor_net(view[None, None], tfeat, state,
+                                                          *prev_args(prev))
                     a = choose_action(logits[0, 0], False, self.rng)
                 if self.teacher is not None:
                     seg.teacher_logp.append(self.teacher.step(info))
                 obs, r, terminated, truncated, info = self.env.step(a)
                 seg.views.append(view)
+                if prev is not None:
+                    seg.prev_views.append(prev)
                 seg.actions.append(a)
                 seg.rewards.append(float(r))
                 ep_return += float(r)
                 collisions += int(bool(info["collided"]))
                 t += 1
                 view, _ = obs_inputs(obs, info, self.frozen)
+                prev = self.prev_at(info)
                 if terminated or truncated:
                     break
             done = terminated or truncated
@@ -145,9 +181,10 @@ class ISARWorker(MetaWorkerMixin, A3CWorker):
                     if per_step:
                         _, v_next, _ = torch.func.functional_call(
                             self.model, theta, (view[None, None], target[None],
-                                                detach_state(state)))
+                                                detach_state(state), *prev_args(prev)))
                     else:
-                        _, v_next, _ = self.actor_net(view[None, None], tfeat, state)
+                        _, v_next, _ = self.actor_net(view[None, None], tfeat, state,
+                                                      *prev_args(prev))
                 bootstrap = float(v_next[0, 0])
             if per_step:
                 lg = torch.stack(logits_steps)
@@ -196,6 +233,24 @@ class ISARWorker(MetaWorkerMixin, A3CWorker):
                 "adaptive_updates": n_adapt, "kl_weight": lam}
 
 
+def check_prev_view(net_cfg: Any, prev_view: Any) -> None:
+    """Refuse a previous-view source for a network without the extra input slot."""
+    if prev_view is not None and not net_cfg.prev_view_input:
+        raise ConfigError("the previous-altitude view input (curriculum teacher='input') needs "
+                          "a network with the extra input slot: NetConfig.prev_view_input = "
+                          "true (geonav train/meta-train --prev-view-input)")
+
+
+def teacher_record(teacher_spec: Any, prev_view_spec: Any) -> dict[str, Any] | None:
+    """What config.json records about the curriculum teacher of a stage (A or B)."""
+    if prev_view_spec is not None:
+        return {"kind": "input", "prev_alt_m": float(prev_view_spec.alt_m)}
+    if teacher_spec is not None:
+        return {"kind": "kl", "checkpoint": str(teacher_spec.checkpoint),
+                "budget": teacher_spec.budget, "fraction": teacher_spec.fraction}
+    return None
+
+
 def gradient_path(cfg: Any) -> dict[str, Any]:
     """What config.json records about how gradients were computed."""
     return {"path": getattr(cfg, "gradient_path", "recompute"),
@@ -214,15 +269,19 @@ class ISARTrainer(A3CTrainer):
     worker_cls = ISARWorker
 
     def __init__(self, env_factory: Any, net_cfg: Any = None, cfg: ISARConfig | None = None,
-                 *, teacher: Any = None, **kwargs: Any) -> None:
+                 *, teacher: Any = None, prev_view: Any = None, **kwargs: Any) -> None:
         self.teacher_spec = teacher
+        self.prev_view_spec = prev_view
         super().__init__(env_factory, net_cfg, cfg if cfg is not None else ISARConfig(),
                          **kwargs)
+        check_prev_view(self.net_cfg, prev_view)
 
     def worker_extra(self) -> dict[str, Any] | None:
         extra = dict(super().worker_extra() or {})
         if self.teacher_spec is not None:
             extra["teacher"] = self.teacher_spec
+        if self.prev_view_spec is not None:
+            extra["prev_view"] = self.prev_view_spec
         return extra or None
 
     def inline_worker(self) -> A3CWorker:
@@ -233,9 +292,7 @@ class ISARTrainer(A3CTrainer):
     def resolved_config(self) -> dict[str, Any]:
         d = super().resolved_config()
         d["gradient_path"] = gradient_path(self.cfg)
-        d["teacher"] = None if self.teacher_spec is None else {
-            "kind": "kl", "checkpoint": str(self.teacher_spec.checkpoint),
-            "budget": self.teacher_spec.budget, "fraction": self.teacher_spec.fraction}
+        d["teacher"] = teacher_record(self.teacher_spec, self.prev_view_spec)
         return d
 
 

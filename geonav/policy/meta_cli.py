@@ -72,7 +72,8 @@ def net_cfg_from_args(args: argparse.Namespace, toml: dict[str, Any], factory: A
     net_d = dict(toml.get("net", {}))
     for key, val in (("encoder", getattr(args, "encoder", None)),
                      ("encoder_weights", getattr(args, "encoder_weights", None)),
-                     ("obs_size_px", getattr(args, "obs_size", None))):
+                     ("obs_size_px", getattr(args, "obs_size", None)),
+                     ("prev_view_input", getattr(args, "prev_view_input", None) or None)):
         if val is not None:
             net_d[key] = val
     if not net_d:
@@ -133,6 +134,9 @@ def _common(p: argparse.ArgumentParser, algo_default: str) -> None:
     p.add_argument("--encoder", choices=ENCODERS, default=None, help="image encoder")
     p.add_argument("--encoder-weights", default=None, metavar="PATH",
                    help="ResNet18 weights file")
+    p.add_argument("--prev-view-input", action="store_true", default=None,
+                   help="add the extra previous-altitude input slot E(o^prev) to the network "
+                   "(needed by curriculum --teacher input; zero-filled where unused)")
     p.add_argument("--config", default=None, metavar="TOML", help="TOML with [net], the "
                    "algorithm's table, [meta] / [curriculum]; command-line options win")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -170,8 +174,9 @@ def add_parsers(subparsers: Any) -> None:
     c.add_argument("--stage-episodes", type=int, default=None, help="budget per stage")
     c.add_argument("--max-steps", type=int, default=None, help="T_max (default 120)")
     c.add_argument("--teacher", choices=["kl", "none", "input"], default=None,
-                   help="KL prior to the previous stage (default), none, or the extra "
-                   "input variant (not implemented)")
+                   help="KL prior to the previous stage (default), none, or 'input': the "
+                   "previous-altitude view in the network's extra input slot (needs an "
+                   "--init checkpoint trained with --prev-view-input)")
     c.add_argument("--teacher-levels", default=None,
                    help="stages that get the teacher (default: all after the first)")
     c.add_argument("--window", type=int, default=None, help="convergence W (default 500)")

@@ -162,7 +162,9 @@ class CurriculumConfig:
     """Episode cap T_max of every stage."""
     teacher: str = "kl"
     """'kl': KL prior to the previous stage's frozen policy (option A, default); 'none';
-    'input': the extra-input variant (option B, not implemented)."""
+    'input': option B, the extra input slot E(o^prev) fed the view at the same cell at the
+    previous stage's altitude (needs a network with NetConfig.prev_view_input; stages
+    without a teacher zero-fill the slot)."""
     teacher_levels_m: tuple[float, ...] | None = None
     """Stages that get the teacher (None: every stage after the first; the paper's
     reading is (45,))."""
@@ -177,9 +179,6 @@ class CurriculumConfig:
             raise ConfigError("levels_m must name at least one altitude")
         if self.teacher not in TEACHERS:
             raise ConfigError(f"teacher must be one of {TEACHERS}, not {self.teacher!r}")
-        if self.teacher == "input":
-            raise ConfigError("teacher='input' (option B, the extra input slot) is not "
-                              "implemented; use 'kl' or 'none'")
         if self.stage_episodes < 1 or self.max_steps < 1:
             raise ConfigError("stage_episodes and max_steps must be >= 1")
         if not 0.0 < self.teacher_decay_fraction <= 1.0:

@@ -3,9 +3,13 @@
 Current view and target view -> encoder -> linear to ``embed_dim`` each (ReLU);
 previous action probabilities -> linear to ``action_embed_dim`` (ReLU);
 concatenate -> fully connected (ReLU) -> LSTMCell -> actor (``n_actions``) and
-critic (1) heads. SAVN's initialisation (allenai/savn ``models/model_io.py``,
-``utils/net_util.py``): Xavier-uniform weights and zero biases, actor weights
-column-normalised to std 0.01, critic to 1.0.
+critic (1) heads. With ``NetConfig.prev_view_input`` an extra slot E(o^prev)
+(ALGORITHMS.md (e), option B) adds the encoder features of the view at the same cell
+at the previous curriculum altitude, linear to ``embed_dim`` (ReLU), concatenated after
+the target embedding; ``forward``'s ``prev`` argument feeds it, and None zero-fills the
+slot's *features* (so the embedding is ReLU(bias)). SAVN's initialisation
+(allenai/savn ``models/model_io.py``, ``utils/net_util.py``): Xavier-uniform weights
+and zero biases, actor weights column-normalised to std 0.01, critic to 1.0.
 
 The recurrent state is a tuple ``(h, c, p)``: LSTM hidden and cell ``(B, lstm_size)``
 and the previous action probabilities ``(B, n_actions)`` (zeros at episode start).
@@ -72,8 +76,12 @@ class ActorCritic(nn.Module):
         fdim = feature_dim(cfg)
         self.obs_embed = nn.Linear(fdim, cfg.embed_dim)
         self.target_embed = nn.Linear(fdim, cfg.embed_dim)
+        # Only registered when on: without it, parameter names and shapes are the original ones.
+        self.prev_embed: nn.Linear | None = nn.Linear(fdim, cfg.embed_dim) \
+            if cfg.prev_view_input else None
         self.action_embed = nn.Linear(cfg.n_actions, cfg.action_embed_dim)
-        self.fc = nn.Linear(2 * cfg.embed_dim + cfg.action_embed_dim, cfg.hidden_size)
+        self.fc = nn.Linear(self.n_view_slots * cfg.embed_dim + cfg.action_embed_dim,
+                            cfg.hidden_size)
         self.lstm = nn.LSTMCell(cfg.hidden_size, cfg.lstm_size)
         self.actor = nn.Linear(cfg.lstm_size, cfg.n_actions)
         self.critic = nn.Linear(cfg.lstm_size, 1)
@@ -90,6 +98,11 @@ class ActorCritic(nn.Module):
         with torch.no_grad():
             self.actor.bias.zero_()
             self.critic.bias.zero_()
+
+    @property
+    def n_view_slots(self) -> int:
+        """Image inputs concatenated before the FC layer: current, target (, previous)."""
+        return 3 if self.cfg.prev_view_input else 2
 
     @property
     def takes_images(self) -> bool:
@@ -110,8 +123,8 @@ class ActorCritic(nn.Module):
             return self.encoder(x)
         return x
 
-    def forward(self, obs: torch.Tensor, target: torch.Tensor, state: State
-                ) -> tuple[torch.Tensor, torch.Tensor, State]:
+    def forward(self, obs: torch.Tensor, target: torch.Tensor, state: State,
+                prev: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, State]:
         """Run T steps.
 
         Args:
@@ -119,6 +132,8 @@ class ActorCritic(nn.Module):
             target: the target view, (B, N, N, 3) uint8 or (B, F) features (frozen encoder,
                 or the trainable CNN's output from :meth:`features`).
             state: ``(h, c, p)`` before the first step.
+            prev: the previous-altitude views at the same cells, shaped like ``obs``
+                (only with ``prev_view_input``); None zero-fills the slot's features.
 
         Returns:
             logits (T, B, n_actions), values (T, B) and the state after step T, whose
@@ -129,10 +144,23 @@ class ActorCritic(nn.Module):
         tgt_f = self.features(target)
         obs_e = F.relu(self.obs_embed(obs_f)).view(T, B, -1)            # (T, B, E)
         tgt_e = F.relu(self.target_embed(tgt_f)).unsqueeze(0).expand(T, B, -1)
-        # fc(cat(obs_e, tgt_e, act_e)) split by columns: the image part is batched over T.
+        parts = [obs_e, tgt_e]
+        if self.prev_embed is not None:
+            if prev is None:  # zero-filled slot
+                prev_f = obs_f.new_zeros(obs_f.shape)
+            else:
+                if prev.shape[:2] != (T, B):
+                    raise ValueError(f"prev must be shaped like obs (T={T}, B={B}, ...), got "
+                                     f"{tuple(prev.shape)}")
+                prev_f = self.features(prev.reshape(T * B, *prev.shape[2:]))
+            parts.append(F.relu(self.prev_embed(prev_f)).view(T, B, -1))
+        elif prev is not None:
+            raise ValueError("this network has no previous-view slot (NetConfig."
+                             "prev_view_input=False); do not pass prev")
+        # fc(cat(obs_e, tgt_e[, prev_e], act_e)) split by columns: the image part is batched.
         w = self.fc.weight
-        k = 2 * self.cfg.embed_dim
-        pre = F.linear(torch.cat([obs_e, tgt_e], dim=-1), w[:, :k], self.fc.bias)  # (T, B, H)
+        k = len(parts) * self.cfg.embed_dim
+        pre = F.linear(torch.cat(parts, dim=-1), w[:, :k], self.fc.bias)  # (T, B, H)
         w_act = w[:, k:]  # sliced once: one SliceBackward per call, not one per step
         h, c, p = state
         hs = []

@@ -15,7 +15,9 @@ temporal conv net, :class:`InteractionLoss`). Per episode (one worker):
    path) goes to the shared ``.grad`` and the shared Adam steps.
 
 Acting is under no_grad on a copy of the network loaded with theta_m; each segment is
-recomputed in one batched call from the (graph) end state of the previous one.
+recomputed in one batched call from the (graph) end state of the previous one. A
+previous-view source (curriculum option B, ``prev_view``) feeds the extra input slot as
+in ISAR.
 """
 
 from __future__ import annotations
@@ -39,7 +41,13 @@ from geonav.policy.functional import (
     sgd_step,
     teacher_kl,
 )
-from geonav.policy.isar import MetaWorkerMixin, gradient_path
+from geonav.policy.isar import (
+    MetaWorkerMixin,
+    check_prev_view,
+    gradient_path,
+    prev_args,
+    teacher_record,
+)
 from geonav.policy.losses import actor_critic_loss
 from geonav.policy.meta_config import SAVNConfig
 from geonav.policy.model import ActorCritic
@@ -109,6 +117,7 @@ class SAVNWorker(MetaWorkerMixin, A3CWorker):
         if self.teacher is not None:
             self.teacher.reset(info)
         view, target = obs_inputs(obs, info, self.frozen)
+        prev = self.prev_reset(info)
         self.sync()
         policy = self._params[:self.n_policy]
         theta = dict(zip(self.names, policy, strict=True))
@@ -125,22 +134,27 @@ class SAVNWorker(MetaWorkerMixin, A3CWorker):
             seg = Segment(state, target)
             for _ in range(cfg.k_steps):
                 with torch.no_grad():
-                    logits, _, state = self.actor_net(view[None, None], tfeat, state)
+                    logits, _, state = self.actor_net(view[None, None], tfeat, state,
+                                                      *prev_args(prev))
                 a = choose_action(logits[0, 0], False, self.rng)
                 if self.teacher is not None:
                     seg.teacher_logp.append(self.teacher.step(info))
                 obs, r, terminated, truncated, info = self.env.step(a)
                 seg.views.append(view)
+                if prev is not None:
+                    seg.prev_views.append(prev)
                 seg.actions.append(a)
                 seg.rewards.append(float(r))
                 ep_return += float(r)
                 collisions += int(bool(info["collided"]))
                 t += 1
                 view, _ = obs_inputs(obs, info, self.frozen)
+                prev = self.prev_at(info)
                 if terminated or truncated:
                     break
             logits, values, hs, gstate = segment_forward(
-                self.model, theta, torch.stack(seg.views), target, gstate, hidden=True)
+                self.model, theta, torch.stack(seg.views), target, gstate, hidden=True,
+                prev=seg.prev())
             all_logits.append(logits)
             all_values.append(values)
             actions += seg.actions
@@ -162,7 +176,8 @@ class SAVNWorker(MetaWorkerMixin, A3CWorker):
         bootstrap = 0.0
         if truncated and not terminated and cfg.loss.bootstrap_on_truncation:
             with torch.no_grad():
-                _, v_next, _ = self.actor_net(view[None, None], tfeat, state)
+                _, v_next, _ = self.actor_net(view[None, None], tfeat, state,
+                                              *prev_args(prev))
             bootstrap = float(v_next[0, 0])
         terms = actor_critic_loss(torch.cat(all_logits), torch.cat(all_values), actions,
                                   rewards, bootstrap, cfg.loss)
@@ -195,10 +210,12 @@ class SAVNTrainer(A3CTrainer):
     worker_cls = SAVNWorker
 
     def __init__(self, env_factory: Any, net_cfg: Any = None, cfg: SAVNConfig | None = None,
-                 *, teacher: Any = None, **kwargs: Any) -> None:
+                 *, teacher: Any = None, prev_view: Any = None, **kwargs: Any) -> None:
         self.teacher_spec = teacher
+        self.prev_view_spec = prev_view
         super().__init__(env_factory, net_cfg, cfg if cfg is not None else SAVNConfig(),
                          **kwargs)
+        check_prev_view(self.net_cfg, prev_view)
 
     def build_aux(self) -> dict[str, nn.Module]:
         return {"interaction_loss": InteractionLoss(self.cfg.k_steps,  # type: ignore[attr-defined]
@@ -208,6 +225,8 @@ class SAVNTrainer(A3CTrainer):
         extra = dict(super().worker_extra() or {})
         if self.teacher_spec is not None:
             extra["teacher"] = self.teacher_spec
+        if self.prev_view_spec is not None:
+            extra["prev_view"] = self.prev_view_spec
         return extra
 
     def inline_worker(self) -> A3CWorker:
@@ -220,9 +239,7 @@ class SAVNTrainer(A3CTrainer):
     def resolved_config(self) -> dict[str, Any]:
         d = super().resolved_config()
         d["gradient_path"] = {**gradient_path(self.cfg), "path": "recompute"}
-        d["teacher"] = None if self.teacher_spec is None else {
-            "kind": "kl", "checkpoint": str(self.teacher_spec.checkpoint),
-            "budget": self.teacher_spec.budget, "fraction": self.teacher_spec.fraction}
+        d["teacher"] = teacher_record(self.teacher_spec, self.prev_view_spec)
         return d
 
 

@@ -1,10 +1,16 @@
-"""The curriculum's KL-prior teacher (ALGORITHMS.md (e), option A).
+"""The curriculum's KL-prior teacher (ALGORITHMS.md (e), option A), and the source of the
+previous-altitude view of option B (the extra input slot E(o^prev)).
 
 The teacher is the previous stage's frozen final policy with its own LSTM state. At
 every step it sees the render at the student's current cell at *its* altitude (the
 lattice is the same at every altitude, so a cell names the same place) and the target
 rendered at that altitude; its action log-probabilities go into the segment, and the
 student's interaction loss gains lambda * KL(pi_T || pi_theta).
+
+Option B (:class:`PrevViewSpec` / :class:`PrevViewSource`) renders the same view, the
+student's cell at the previous altitude, but feeds it to the *student* network's extra
+slot, encoded exactly as the current view (the student's own encoder; the frozen
+feature cache keyed by task, cell and altitude). The target input is unchanged.
 """
 
 from __future__ import annotations
@@ -16,6 +22,7 @@ import torch
 
 from geonav.policy.agent import view_input
 from geonav.policy.checkpoint import check_compatible, load_checkpoint
+from geonav.policy.encoders import FrozenEncoder
 from geonav.policy.meta_config import kl_weight
 
 
@@ -58,12 +65,7 @@ class Teacher:
         self.task_index = -1
 
     def _view(self, task_index: int, cell: tuple[int, int]) -> torch.Tensor:
-        u = self.env.unwrapped
-        alt = float(u.tasks[task_index].alt_m)
-        key = (task_index, (int(cell[0]), int(cell[1])), alt) if self.frozen is not None \
-            else None
-        return view_input(u.observation_at(task_index, (int(cell[0]), int(cell[1]))),
-                          self.frozen, key)
+        return view_at(self.env, self.frozen, task_index, cell)
 
     def reset(self, info: dict[str, Any]) -> None:
         """A new episode: zero state, the target rendered at the teacher's altitude."""
@@ -78,3 +80,52 @@ class Teacher:
         assert self.target is not None
         logits, _, self.state = self.model(x[None, None], self.target[None], self.state)
         return torch.log_softmax(logits[0, 0], dim=-1)
+
+
+def view_at(env: Any, frozen: FrozenEncoder | None, task_index: int,
+            cell: tuple[int, int]) -> torch.Tensor:
+    """The network input of the render at ``cell`` of task ``task_index`` in ``env`` (at
+    that env's altitude): uint8 image, or frozen features through the cache."""
+    u = env.unwrapped
+    c = (int(cell[0]), int(cell[1]))
+    alt = float(u.tasks[task_index].alt_m)
+    key = (task_index, c, alt) if frozen is not None else None
+    return view_input(u.observation_at(task_index, c), frozen, key)
+
+
+@dataclass(frozen=True)
+class PrevViewSpec:
+    """A picklable recipe for the previous-altitude view of option B (built per worker).
+
+    Attributes:
+        env_factory: the stage's environment at the previous stage's altitude (same tasks,
+            same lattice).
+        alt_m: that altitude (recorded in config.json).
+    """
+
+    env_factory: Any
+    alt_m: float
+
+    def build(self, frozen: FrozenEncoder | None) -> PrevViewSource:
+        """The source, encoding with the student's frozen encoder (None: uint8 images for
+        the student's trainable CNN)."""
+        return PrevViewSource(self, frozen)
+
+
+class PrevViewSource:
+    """Gives, per step, the student's network input for the view at the student's current
+    cell rendered at the previous altitude (the extra slot's input)."""
+
+    def __init__(self, spec: PrevViewSpec, frozen: FrozenEncoder | None) -> None:
+        self.spec = spec
+        self.env = spec.env_factory()
+        self.frozen = frozen
+        self.task_index = -1
+
+    def reset(self, info: dict[str, Any]) -> None:
+        """A new episode (remembers the task)."""
+        self.task_index = int(info["task_index"])
+
+    def view(self, info: dict[str, Any]) -> torch.Tensor:
+        """The input for ``info``'s cell: (N, N, 3) uint8 or (F,) features."""
+        return view_at(self.env, self.frozen, self.task_index, tuple(info["cell"]))
