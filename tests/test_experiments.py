@@ -89,6 +89,9 @@ name = "transfer vs scratch"
 part = "transfer"
 methods = ["scratch", "transfer"]
 paper = { transfer = 2000, scratch = 50000 }
+
+[flight]
+stage = "transfer"
 """
 
 
@@ -128,13 +131,19 @@ def test_tiny_experiment_end_to_end(tmp_path):
     assert tr["algorithm"] == "a3c"
     result = json.loads((root / "units/transfer/seed-1/result.json").read_text())
     assert Path(result["checkpoint"]).exists() and result["eval"]["episodes"] == 8
+    # the transferred policy flew its task through the MAVLink emulator, and landed
+    assert "## Flight (MAVLink emulator)" in report
+    flight = json.loads((root / "flight" / "summary.json").read_text())
+    assert flight["end_action"] == "land" and flight["disarmed"]
+    steps = (root / "flight" / "flight.jsonl").read_text().strip().splitlines()
+    assert flight["steps"] >= 1 and len(steps) >= flight["steps"]
 
 
 def test_resume_after_kill_skips_finished_units(tmp_path):
     cfg = _write(tmp_path, 150)
     root = tmp_path / "runs" / "tiny"
     proc = subprocess.Popen(_geonav("experiment", "run", str(cfg), "--out", "runs", "--jobs", "1",
-                                    "--only", "transfer", cwd=tmp_path), cwd=tmp_path,
+                                    "--only", "transfer", "--fly", "no", cwd=tmp_path), cwd=tmp_path,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                             start_new_session=True)
     first_done = None
@@ -157,7 +166,7 @@ def test_resume_after_kill_skips_finished_units(tmp_path):
                   if not (p.parent.parent / "result.json").exists()]
     assert unfinished
     rerun = subprocess.run(_geonav("experiment", "run", str(cfg), "--out", "runs", "--jobs", "2",
-                                   "--only", "transfer", cwd=tmp_path), cwd=tmp_path,
+                                   "--only", "transfer", "--fly", "no", cwd=tmp_path), cwd=tmp_path,
                            capture_output=True, text=True, timeout=400)
     assert rerun.returncode == 0, rerun.stderr[-3000:]
     assert first_done.stat().st_mtime_ns == mtime  # finished unit skipped
