@@ -631,11 +631,11 @@ def fly(
             )
         home = scene.frame.to_lonlat(lattice.center(start_cell), 0.0)
         # A dry run is a rehearsal, not a failsafe test: emulated time runs 3x faster and
-        # PX4's offboard-loss timeout is 3 s (1 s wall), so a busy machine's scheduling
-        # hiccups do not end the flight (the failsafe itself is tested with 1 s).
+        # PX4's offboard-loss timeout is 6 s (2 s wall), so the in-process emulator's GIL
+        # sharing on a busy machine does not end the flight.
         ec = emulator_config or EmulatorConfig(
             autopilot=autopilot,
-            offboard_loss_s=3.0,
+            offboard_loss_s=6.0,
             time_scale=3.0,
             boot_s=1.0,
             prearm_s=2.0,
