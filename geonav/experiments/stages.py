@@ -228,7 +228,7 @@ def execute_stage(p: dict[str, Any]) -> dict[str, Any]:
     """Run a unit (see the module docstring); returns the result recorded in result.json."""
     import torch
 
-    from geonav.policy.cli import EnvFactory
+    from geonav.policy.envs import EnvFactory
 
     torch.set_num_threads(1)
     key = (p["mode"], p["algo"])
