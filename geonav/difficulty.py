@@ -179,3 +179,18 @@ def env_difficulty(env: Any, blind_grid: int = 20) -> dict[str, Any]:
             "random_walk_sr": float(np.mean([v.random_walk_sr for v in vals])),
             "blind_sr": float(np.mean([v.blind_sr for v in vals])),
             "mean_shortest_path": float(np.mean([v.mean_shortest_path for v in vals]))}
+
+
+def taskset_difficulty(ts: Any, scene: Any, blind_grid: int = 20) -> dict[str, Any]:
+    """:func:`set_difficulty` of a :class:`geonav.tasks.TaskSet` on its scene (the value
+    ``geonav tasks make`` stores in the task set's ``meta["difficulty"]``)."""
+    from geonav.tasks import bind
+
+    ts.check_scene(scene)
+    return set_difficulty([bind(t, scene, ts.camera) for t in ts.tasks], None, blind_grid)
+
+
+def describe(diff: dict[str, Any]) -> str:
+    """One line for people: chance figures of a task set."""
+    return (f"random-walk success {diff['random_walk_sr']:.3f}, best state-blind "
+            f"{diff['blind_sr']:.3f}, mean shortest path {diff['mean_shortest_path']:.1f} steps")

@@ -42,9 +42,14 @@ def run_make(args: argparse.Namespace) -> int:
         alts = [float(a) for a in args.alts.split(",")]
         ts = whole_scene_tasks(scene, alts, step_m=args.step, max_steps=args.max_steps or 120,
                                seed=args.seed, size_m=args.size, camera=camera)
+    from geonav.difficulty import describe, taskset_difficulty
+
+    ts.meta["difficulty"] = diff = taskset_difficulty(ts, scene)
     ts.save(args.out)
     t = ts.tasks[0]
     nx, ny = t.lattice.shape
     print(f"{len(ts)} {args.kind} task(s) on scene {scene.name}: {nx}x{ny} cells of "
           f"{t.step_m:g} m at {', '.join(f'{x.alt_m:g}' for x in ts.tasks[:4])} m -> {args.out}")
+    print(f"chance: {describe(diff)} (exact, DP over the lattice; "
+          f"per task in the JSON's meta.difficulty)")
     return 0

@@ -79,16 +79,19 @@ def add_parser(subparsers: Any) -> None:
     p.set_defaults(handler=run_train)
 
     e = subparsers.add_parser("eval", help="evaluate a policy checkpoint",
-                              description="Success rate, SPL, mean length and collisions from "
-                              "fixed seeded starts.")
+                              description="Greedy and sampled success rate, SPL, length / "
+                              "shortest path and collisions from every valid start cell of "
+                              "every task (a seeded sample above --max-starts), beside the "
+                              "task's exact random-walk success.")
     e.add_argument("checkpoint", metavar="CKPT", help="policy checkpoint (.pt)")
     e.add_argument("--scene", required=True, help="scene package folder")
     e.add_argument("--tasks", required=True, help="task set JSON")
     e.add_argument("--altitude", type=float, default=None, metavar="M",
                    help="fly every task at this altitude (default: the tasks')")
-    e.add_argument("--episodes", type=int, default=20, help="seeded starts per task")
-    e.add_argument("--greedy", action="store_true", help="argmax actions (default: sampled)")
-    e.add_argument("--seed", type=int, default=0, help="seed of the starts and sampled actions")
+    e.add_argument("--max-starts", type=int, default=500, metavar="N",
+                   help="evaluate at most N start cells in all (a seeded sample; default 500)")
+    e.add_argument("--seed", type=int, default=0, help="seed of the start sample and of "
+                   "sampled actions")
     e.add_argument("--max-steps", type=int, default=None, help="episode cap override")
     e.add_argument("--json", default=None, metavar="FILE", help="also write the results as JSON")
     e.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -179,31 +182,39 @@ def run_train(args: argparse.Namespace) -> int:
 
 
 def run_eval(args: argparse.Namespace) -> int:
-    """Handler of ``geonav eval``."""
-    from tqdm import tqdm
-
+    """Handler of ``geonav eval``: greedy and sampled from every start, beside chance."""
+    from geonav.difficulty import env_difficulty
     from geonav.policy.checkpoint import check_compatible, load_checkpoint
-    from geonav.policy.evaluation import evaluate
+    from geonav.policy.evaluation import evaluate_both
 
+    if args.max_starts < 1:
+        raise ConfigError(f"--max-starts must be >= 1, got {args.max_starts}")
     ckpt = load_checkpoint(args.checkpoint)
     factory = EnvFactory(str(args.scene), str(args.tasks), args.altitude,
                          int(ckpt.meta["obs_size_px"]), args.max_steps)
     env = factory()
     check_compatible(ckpt.meta, env, path=ckpt.path)
     model = ckpt.build_model()
-    bar = tqdm(total=args.episodes * len(env.unwrapped.tasks), unit="ep",
-               disable=args.no_progress)
-    res = evaluate(model, env, frozen=ckpt.build_encoder(), episodes_per_task=args.episodes,
-                   seed=args.seed, greedy=args.greedy,
-                   progress=lambda done, total: bar.update(1))
-    bar.close()
-    summary = {"checkpoint": str(ckpt.path), "mode": "greedy" if args.greedy else "sampled",
-               **res.summary()}
+    res = evaluate_both(model, env, frozen=ckpt.build_encoder(), max_starts=args.max_starts,
+                        seed=args.seed)
+    chance = env_difficulty(env)
+    row = res["row"]
+    summary = {"checkpoint": str(ckpt.path), "starts": res["starts"],
+               "greedy": {k[7:]: v for k, v in row.items() if k.startswith("greedy_")},
+               "sampled": {k[8:]: v for k, v in row.items() if k.startswith("sampled_")},
+               "random_walk_sr": round(chance["random_walk_sr"], 6),
+               "blind_sr": round(chance["blind_sr"], 6),
+               "mean_shortest_path": round(chance["mean_shortest_path"], 3)}
+    g, s = summary["greedy"], summary["sampled"]
+    print(f"{res['starts']} starts: greedy SR {g['sr']:.3f} SPL {g['spl']:.3f} | sampled SR "
+          f"{s['sr']:.3f} SPL {s['spl']:.3f} | chance: random walk {chance['random_walk_sr']:.3f},"
+          f" best state-blind {chance['blind_sr']:.3f}", file=sys.stderr)
     print(json.dumps(summary))
     if args.json:
         out = Path(args.json)
         tmp = out.with_name(f".{out.name}.tmp")
-        tmp.write_text(json.dumps({**summary, "per_episode": res.episodes}, indent=1))
+        per = {"greedy": res["greedy"].episodes, "sampled": res["sampled"].episodes}
+        tmp.write_text(json.dumps({**summary, "per_episode": per}, indent=1))
         os.replace(tmp, out)
     return 0
 

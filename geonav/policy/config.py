@@ -128,6 +128,14 @@ class A3CConfig:
     """Also keep checkpoints/episode_<n>.pt for every periodic checkpoint."""
     torch_threads: int = 1
     """Torch intra-op threads per worker (one per worker is fastest on a small CPU)."""
+    eval_every: int = -1
+    """Evaluate the live policy greedily and sampled from every start cell (up to
+    eval_max_starts) every this many episodes, into eval.csv, and once at the end;
+    -1: 5 x the number of evaluation starts (rounded up to 10), which keeps evaluation
+    near or under 10 % of training time; 0: no evaluation at all."""
+    eval_max_starts: int = 100
+    """Start cells per periodic evaluation (all of them when there are fewer; a fixed
+    seeded sample otherwise)."""
     loss: LossConfig = field(default_factory=LossConfig)
     """Loss settings."""
 
@@ -140,6 +148,10 @@ class A3CConfig:
             raise ConfigError(f"t_max must be >= 1, got {self.t_max}")
         if self.lr <= 0:
             raise ConfigError(f"lr must be positive, got {self.lr}")
+        if self.eval_every < -1:
+            raise ConfigError(f"eval_every must be >= -1, got {self.eval_every}")
+        if self.eval_max_starts < 1:
+            raise ConfigError(f"eval_max_starts must be >= 1, got {self.eval_max_starts}")
         if self.checkpoint_every < 0:
             raise ConfigError(f"checkpoint_every must be >= 0, got {self.checkpoint_every}")
 

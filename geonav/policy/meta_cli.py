@@ -231,7 +231,7 @@ def _floats(text: str | None) -> tuple[float, ...] | None:
 
 def run_curriculum_cmd(args: argparse.Namespace) -> int:
     """Handler of ``geonav curriculum``."""
-    from geonav.experiments.convergence import ConvergenceCriterion
+    from geonav.convergence import ConvergenceCriterion
     from geonav.policy.cli import EnvFactory, _TqdmProgress
     from geonav.policy.config import from_dict
     from geonav.policy.curriculum import run_curriculum
