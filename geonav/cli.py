@@ -13,7 +13,7 @@ import importlib
 import logging
 import sys
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 from geonav import __version__
 from geonav.errors import GeonavError
@@ -47,25 +47,6 @@ def build_parser() -> argparse.ArgumentParser:
             raise
         module.add_parser(sub)
     return parser
-
-
-def progress_bar(desc: str) -> Callable[[str, float], None]:
-    """A progress callback (phase, fraction) drawn with tqdm on stderr."""
-    from tqdm import tqdm
-
-    bars: dict[str, tqdm] = {}
-
-    def update(phase: str, fraction: float) -> None:
-        bar = bars.get(phase)
-        if bar is None:
-            bar = bars[phase] = tqdm(total=1000, desc=f"{desc}: {phase}", leave=False,
-                                     unit="‰", disable=None)
-        bar.n = int(max(0.0, min(1.0, fraction)) * 1000)
-        bar.refresh()
-        if fraction >= 1.0:
-            bar.close()
-
-    return update
 
 
 def main(argv: Sequence[str] | None = None) -> int:

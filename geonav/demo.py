@@ -69,7 +69,7 @@ def rollout(env, task_index: int, policy: str, seed: int) -> tuple[list, dict]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from geonav.cli import progress_bar
+    from geonav.cliutil import progress_bar
     from geonav.env import GeoNavEnv
     from geonav.tasks import sample_meta_tasks, whole_scene_tasks
     from geonav.viz import draw_scene

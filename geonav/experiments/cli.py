@@ -39,7 +39,7 @@ def _overrides(args: argparse.Namespace) -> dict:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from geonav.cli import progress_bar
+    from geonav.cliutil import progress_bar
     from geonav.experiments.config import load_config
     from geonav.experiments.runner import UnitEvent, run_experiment
 

@@ -93,7 +93,7 @@ def run_fly(args: argparse.Namespace) -> int:
     if not args.dry_run and not args.connect:
         raise ConfigError("give --connect URL, or --dry-run to fly against the emulator")
     try:
-        from geonav.cli import progress_bar
+        from geonav.cliutil import progress_bar
 
         progress = progress_bar("fly")
     except ImportError:

@@ -16,27 +16,11 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from geonav.cliutil import TqdmProgress, load_toml
 from geonav.errors import ConfigError
 
 # EnvFactory lives in the library (experiments use it too); re-exported for the CLIs.
 from geonav.policy.envs import EnvFactory  # noqa: E402,F401
-
-
-def _load_toml(path: str | None) -> dict[str, Any]:
-    if path is None:
-        return {}
-    try:
-        import tomllib
-    except ModuleNotFoundError:  # pragma: no cover - Python 3.10
-        import tomli as tomllib  # type: ignore[no-redef]
-
-    try:
-        with open(path, "rb") as f:
-            return tomllib.load(f)
-    except FileNotFoundError as err:
-        raise ConfigError(f"config file {path} does not exist") from err
-    except tomllib.TOMLDecodeError as err:
-        raise ConfigError(f"config file {path} is not valid TOML: {err}") from err
 
 
 def add_parser(subparsers: Any) -> None:
@@ -100,7 +84,7 @@ def resolve_train_configs(args: argparse.Namespace) -> tuple[Any, Any]:
     """(NetConfig, A3CConfig) from defaults, the TOML file and the command line."""
     from geonav.policy.config import A3CConfig, LossConfig, NetConfig, from_dict
 
-    toml = _load_toml(getattr(args, "config", None))
+    toml = load_toml(getattr(args, "config", None))
     unknown = sorted(set(toml) - {"net", "a3c"})
     if unknown:
         raise ConfigError(f"unknown table(s) {unknown} in {args.config}; use [net] and [a3c]")
@@ -125,33 +109,6 @@ def resolve_train_configs(args: argparse.Namespace) -> tuple[Any, Any]:
     return from_dict(NetConfig, net_d) if net_d else None, a3c
 
 
-class _TqdmProgress:
-    """Turns trainer callbacks into a tqdm bar (success-rate moving average in the postfix)."""
-
-    def __init__(self, disable: bool) -> None:
-        from tqdm import tqdm  # type: ignore[import-untyped]
-
-        from geonav.policy.callbacks import Callback
-
-        class _CB(Callback):
-            def on_train_start(cb, info: dict[str, Any]) -> None:
-                cb.bar = tqdm(total=info["episodes"], initial=info["start_episode"],
-                              unit="ep", disable=disable, dynamic_ncols=True)
-                cb.recent: list[float] = []
-
-            def on_episode(cb, record: dict[str, Any]) -> None:
-                cb.recent = (cb.recent + [float(record["success"])])[-100:]
-                cb.bar.update(1)
-                cb.bar.set_postfix(sr=f"{sum(cb.recent) / len(cb.recent):.2f}",
-                                   len=record["length"])
-
-            def on_train_end(cb, result: Any) -> None:
-                if hasattr(cb, "bar"):
-                    cb.bar.close()
-
-        self.callback = _CB()
-
-
 def run_train(args: argparse.Namespace) -> int:
     """Handler of ``geonav train``."""
     from geonav.policy.a3c import A3CTrainer
@@ -167,7 +124,7 @@ def run_train(args: argparse.Namespace) -> int:
                          args.max_steps)
     if net_cfg is not None and obs is None:  # take the task set camera's size
         net_cfg = replace(net_cfg, obs_size_px=int(factory().observation_space["image"].shape[0]))
-    progress = _TqdmProgress(args.no_progress)
+    progress = TqdmProgress(args.no_progress)
     trainer = A3CTrainer(factory, net_cfg, a3c, out_dir=args.out, resume=args.resume,
                          callbacks=[progress.callback])
     result = trainer.train()

@@ -13,7 +13,9 @@ import argparse
 from dataclasses import replace
 from typing import Any
 
+from geonav.cliutil import TqdmProgress, load_toml
 from geonav.errors import ConfigError
+from geonav.policy.envs import EnvFactory
 
 ALGOS = ("a3c", "savn", "isar")
 
@@ -34,9 +36,7 @@ def add_algo_args(p: argparse.ArgumentParser) -> None:
 
 
 def _toml(args: argparse.Namespace) -> dict[str, Any]:
-    from geonav.policy.cli import _load_toml
-
-    return _load_toml(getattr(args, "config", None))
+    return load_toml(getattr(args, "config", None))
 
 
 def base_cfg_from_args(args: argparse.Namespace, algo: str, toml: dict[str, Any]) -> Any:
@@ -97,7 +97,6 @@ def _summary(result: Any) -> str:
 
 def run_train_algo(args: argparse.Namespace) -> int:
     """``geonav train --algo savn|isar``."""
-    from geonav.policy.cli import EnvFactory, _TqdmProgress
     from geonav.policy.isar import ISARTrainer
     from geonav.policy.savn import SAVNTrainer
 
@@ -110,7 +109,7 @@ def run_train_algo(args: argparse.Namespace) -> int:
     if net is not None and args.obs_size is None:
         factory = replace(factory, obs_size_px=net.obs_size_px)
     cls = {"savn": SAVNTrainer, "isar": ISARTrainer}[args.algo]
-    progress = _TqdmProgress(args.no_progress)
+    progress = TqdmProgress(args.no_progress)
     result = cls(factory, net, cfg, out_dir=args.out, resume=args.resume,
                  callbacks=[progress.callback]).train()
     print(_summary(result))
@@ -187,7 +186,6 @@ def add_parsers(subparsers: Any) -> None:
 
 def run_meta_train(args: argparse.Namespace) -> int:
     """Handler of ``geonav meta-train``."""
-    from geonav.policy.cli import EnvFactory, _TqdmProgress
     from geonav.policy.config import from_dict
     from geonav.policy.meta import MetaTrainer
     from geonav.policy.meta_config import MetaConfig
@@ -212,7 +210,7 @@ def run_meta_train(args: argparse.Namespace) -> int:
     net = net_cfg_from_args(args, toml, factory)
     if net is not None and args.obs_size is None:
         factory = replace(factory, obs_size_px=net.obs_size_px)
-    progress = _TqdmProgress(args.no_progress)
+    progress = TqdmProgress(args.no_progress)
     result = MetaTrainer(factory, net, args.algo, base, meta, out_dir=args.out,
                          resume=args.resume, callbacks=[progress.callback]).train()
     print(_summary(result))
@@ -232,7 +230,6 @@ def _floats(text: str | None) -> tuple[float, ...] | None:
 def run_curriculum_cmd(args: argparse.Namespace) -> int:
     """Handler of ``geonav curriculum``."""
     from geonav.experiments.convergence import ConvergenceCriterion
-    from geonav.policy.cli import EnvFactory, _TqdmProgress
     from geonav.policy.config import from_dict
     from geonav.policy.curriculum import run_curriculum
     from geonav.policy.meta_config import CurriculumConfig
@@ -267,7 +264,7 @@ def run_curriculum_cmd(args: argparse.Namespace) -> int:
                                                        .meta["obs_size_px"]))
         elif net is not None:
             factory = replace(factory, obs_size_px=net.obs_size_px)
-    progress = _TqdmProgress(args.no_progress)
+    progress = TqdmProgress(args.no_progress)
     res = run_curriculum(factory, args.init, args.algo, base, cur, out_dir=args.out,
                          criterion=criterion, net_cfg=net, callbacks=[progress.callback])
     for s in res.stages:

@@ -86,7 +86,7 @@ def _report(scene, out: Path) -> None:
 
 
 def run_ingest(args: argparse.Namespace) -> int:
-    from geonav.cli import progress_bar
+    from geonav.cliutil import progress_bar
     from geonav.tiles.ingest import ingest
 
     with warnings.catch_warnings():
@@ -101,7 +101,7 @@ def run_ingest(args: argparse.Namespace) -> int:
 
 
 def run_synth(args: argparse.Namespace) -> int:
-    from geonav.cli import progress_bar
+    from geonav.cliutil import progress_bar
     from geonav.tiles.ingest import ingest_synthetic
 
     scene = ingest_synthetic(args.kind, out=args.out, name=args.name, size_m=args.size,

@@ -67,7 +67,7 @@ def _subdomains(text: str) -> tuple[str, ...]:
 
 
 def run_fetch(args: argparse.Namespace) -> int:
-    from geonav.cli import progress_bar
+    from geonav.cliutil import progress_bar
     from geonav.tiles.fetch import USER_AGENT, FetchIncomplete, fetch_tiles
 
     try:
