@@ -16,7 +16,13 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from geonav.cliutil import TqdmProgress, load_toml
+from geonav.cliutil import (
+    TqdmProgress,
+    load_toml,
+    nonneg_int,
+    positive_float,
+    positive_int,
+)
 from geonav.errors import ConfigError
 
 # EnvFactory lives in the library (experiments use it too); re-exported for the CLIs.
@@ -36,24 +42,25 @@ def add_parser(subparsers: Any) -> None:
                    help="training algorithm")
     p.add_argument("--scene", required=True, help="scene package folder")
     p.add_argument("--tasks", required=True, help="task set JSON")
-    p.add_argument("--altitude", type=float, default=None, metavar="M",
+    p.add_argument("--altitude", type=positive_float, default=None, metavar="M",
                    help="fly every task at this altitude in metres (default: the tasks')")
-    p.add_argument("--episodes", type=int, default=None, help=ah["episodes"])
-    p.add_argument("--workers", type=int, default=None, help=ah["workers"])
+    p.add_argument("--episodes", type=positive_int, default=None, help=ah["episodes"])
+    p.add_argument("--workers", type=nonneg_int, default=None, help=ah["workers"])
     p.add_argument("--out", required=True, metavar="RUN_DIR", help="run folder")
     p.add_argument("--resume", default=None, metavar="CKPT", help="continue from a checkpoint "
                    "(episode count, weights, optimiser and RNG state)")
-    p.add_argument("--seed", type=int, default=None, help=ah["seed"])
-    p.add_argument("--obs-size", type=int, default=None, metavar="PX",
+    p.add_argument("--seed", type=nonneg_int, default=None, help=ah["seed"])
+    p.add_argument("--obs-size", type=positive_int, default=None, metavar="PX",
                    help="observation side in pixels (default: the task set's camera)")
     p.add_argument("--encoder", choices=ENCODERS, default=None, help=nh["encoder"])
     p.add_argument("--encoder-weights", default=None, metavar="PATH", help=nh["encoder_weights"])
     p.add_argument("--prev-view-input", action="store_true", default=None,
                    help=nh.get("prev_view_input"))
-    p.add_argument("--t-max", type=int, default=None, help=ah["t_max"])
-    p.add_argument("--lr", type=float, default=None, help=ah["lr"])
-    p.add_argument("--max-steps", type=int, default=None, help="episode cap override")
-    p.add_argument("--checkpoint-every", type=int, default=None, help=ah["checkpoint_every"])
+    p.add_argument("--t-max", type=positive_int, default=None, help=ah["t_max"])
+    p.add_argument("--lr", type=positive_float, default=None, help=ah["lr"])
+    p.add_argument("--max-steps", type=positive_int, default=None, help="episode cap override")
+    p.add_argument("--checkpoint-every", type=positive_int, default=None,
+                   help=ah["checkpoint_every"])
     p.add_argument("--config", default=None, metavar="TOML",
                    help="TOML file with [net] and [a3c] tables; command-line options win")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -68,12 +75,13 @@ def add_parser(subparsers: Any) -> None:
     e.add_argument("checkpoint", metavar="CKPT", help="policy checkpoint (.pt)")
     e.add_argument("--scene", required=True, help="scene package folder")
     e.add_argument("--tasks", required=True, help="task set JSON")
-    e.add_argument("--altitude", type=float, default=None, metavar="M",
+    e.add_argument("--altitude", type=positive_float, default=None, metavar="M",
                    help="fly every task at this altitude (default: the tasks')")
-    e.add_argument("--episodes", type=int, default=20, help="seeded starts per task")
+    e.add_argument("--episodes", type=positive_int, default=20, help="seeded starts per task")
     e.add_argument("--greedy", action="store_true", help="argmax actions (default: sampled)")
-    e.add_argument("--seed", type=int, default=0, help="seed of the starts and sampled actions")
-    e.add_argument("--max-steps", type=int, default=None, help="episode cap override")
+    e.add_argument("--seed", type=nonneg_int, default=0,
+                   help="seed of the starts and sampled actions")
+    e.add_argument("--max-steps", type=positive_int, default=None, help="episode cap override")
     e.add_argument("--json", default=None, metavar="FILE", help="also write the results as JSON")
     e.add_argument("--no-progress", action="store_true", help="no progress bar")
     e.set_defaults(handler=run_eval)

@@ -7,28 +7,17 @@ import importlib
 import warnings
 from pathlib import Path
 
-from geonav.errors import ConfigError
-from geonav.geo import LonLat
+from geonav.cliutil import (
+    bbox_arg,
+    finite_float,
+    lonlat_arg,
+    nonneg_int,
+    positive_float,
+)
 
-
-def parse_lonlat(text: str) -> LonLat:
-    """'lon,lat[,alt]' -> LonLat."""
-    try:
-        parts = [float(v) for v in text.split(",")]
-    except ValueError as err:
-        raise ConfigError(f"expected lon,lat[,alt] in degrees, got {text!r}") from err
-    if len(parts) not in (2, 3):
-        raise ConfigError(f"expected lon,lat[,alt] in degrees, got {text!r}")
-    return LonLat(*parts)
-
-
-def parse_bbox(text: str) -> tuple[float, float, float, float]:
-    """'west,south,east,north' in degrees."""
-    try:
-        w, s, e, n = (float(v) for v in text.split(","))
-    except ValueError as err:
-        raise ConfigError(f"expected west,south,east,north in degrees, got {text!r}") from err
-    return w, s, e, n
+#: argparse types shared by the tiles subcommands (kept under their old names).
+parse_lonlat = lonlat_arg
+parse_bbox = bbox_arg
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -42,14 +31,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    "tiles, .mbtiles files (mosaicked in order, first wins)")
     p.add_argument("--tms", action="store_true",
                    help="tile folders count rows from the south (TMS) instead of XYZ")
-    p.add_argument("--zoom", type=int,
+    p.add_argument("--zoom", type=nonneg_int,
                    help="zoom level to read from tile folders/MBTiles (default: the highest)")
     p.add_argument("--name", required=True, help="scene name, e.g. A")
     p.add_argument("--out", required=True, help="scene package folder to write")
     p.add_argument("--dsm", help="surface model raster of absolute heights (any CRS)")
     p.add_argument("--dem", help="ground height raster (default: --ground-alt or estimated)")
-    p.add_argument("--ground-alt", type=float, help="ground height AMSL in metres")
-    p.add_argument("--gsd", type=float, help="scene GSD in m/px (default: the sources' finest)")
+    p.add_argument("--ground-alt", type=finite_float, help="ground height AMSL in metres")
+    p.add_argument("--gsd", type=positive_float,
+                   help="scene GSD in m/px (default: the sources' finest)")
     p.add_argument("--bbox", type=parse_bbox, help="cut to west,south,east,north (degrees)")
     p.add_argument("--origin", type=parse_lonlat, help="scene origin lon,lat[,alt]")
     p.add_argument("--attribution", default="", help="licence/attribution text you hold")
@@ -61,9 +51,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--kind", default="residential", choices=["residential", "campus", "wild"])
     p.add_argument("--name", help="scene name (default: the kind)")
     p.add_argument("--out", required=True, help="scene package folder to write")
-    p.add_argument("--size", type=float, default=1200.0, help="side in metres (default 1200)")
-    p.add_argument("--gsd", type=float, default=0.25, help="m/px (default 0.25)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--size", type=positive_float, default=1200.0,
+                   help="side in metres (default 1200)")
+    p.add_argument("--gsd", type=positive_float, default=0.25, help="m/px (default 0.25)")
+    p.add_argument("--seed", type=nonneg_int, default=0)
     p.add_argument("--origin", type=parse_lonlat, help="scene centre lon,lat[,alt]")
     p.add_argument("--keep-sources", help="folder to keep the generated GeoTIFFs in")
     p.add_argument("--force", action="store_true", help="replace an existing package")
