@@ -13,7 +13,19 @@ from geonav.cliutil import (
     lonlat_arg,
     nonneg_int,
     positive_float,
+    positive_int,
 )
+from geonav.errors import GeonavWarning
+from geonav.tiles import DEFAULT_MEMORY_BUDGET_MB, DSM_UNIT_CHOICES
+
+
+def _bands(text: str) -> tuple[int, ...]:
+    """argparse type of --bands: '4,3,2' or '1' (1-based, like GDAL)."""
+    parts = [p.strip() for p in text.split(",")]
+    if len(parts) not in (1, 3):
+        raise argparse.ArgumentTypeError(f"{text!r}: give three bands R,G,B like 4,3,2, or one")
+    return tuple(positive_int(p) for p in parts)
+
 
 #: argparse types shared by the tiles subcommands (kept under their old names).
 parse_lonlat = lonlat_arg
@@ -42,6 +54,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="scene GSD in m/px (default: the sources' finest)")
     p.add_argument("--bbox", type=parse_bbox, help="cut to west,south,east,north (degrees)")
     p.add_argument("--origin", type=parse_lonlat, help="scene origin lon,lat[,alt]")
+    p.add_argument("--bands", type=_bands,
+                   help="1-based bands of GeoTIFF sources to use as R,G,B (e.g. 4,3,2 for "
+                   "Landsat 8) or one grey band; default: the file's colour interpretation")
+    p.add_argument("--dsm-units", choices=DSM_UNIT_CHOICES,
+                   help="unit of the --dsm/--dem values (default: the file's band unit or "
+                   "vertical CRS, else its horizontal CRS unit, with a warning)")
+    p.add_argument("--memory-budget", type=positive_float, metavar="MIB",
+                   help=f"refuse reads and scene grids above this many MiB (default "
+                   f"{DEFAULT_MEMORY_BUDGET_MB})")
     p.add_argument("--attribution", default="", help="licence/attribution text you hold")
     p.add_argument("--compress", default="JPEG", choices=["JPEG", "DEFLATE"])
     p.add_argument("--force", action="store_true", help="replace an existing package")
@@ -81,12 +102,14 @@ def run_ingest(args: argparse.Namespace) -> int:
     from geonav.tiles.ingest import ingest
 
     with warnings.catch_warnings():
-        warnings.simplefilter("always")
+        warnings.simplefilter("always", GeonavWarning)  # each one, once, as one line
         scene = ingest(args.sources, name=args.name, out=args.out, dsm=args.dsm, dem=args.dem,
                        ground_alt_m=args.ground_alt, gsd_m=args.gsd, origin=args.origin,
                        bbox_lonlat=args.bbox, attribution=args.attribution,
                        overwrite=args.force, compress=args.compress,
-                       progress=progress_bar("ingest"), tms=args.tms, zoom=args.zoom)
+                       progress=progress_bar("ingest"), tms=args.tms, zoom=args.zoom,
+                       rgb_bands=args.bands, dsm_units=args.dsm_units,
+                       memory_budget_mb=args.memory_budget)
     _report(scene, Path(args.out))
     return 0
 
