@@ -7,6 +7,13 @@ import argparse
 from geonav.cliutil import nonneg_int, positive_float, positive_floats, positive_int
 
 
+def _fraction(text: str) -> float:
+    value = positive_float(text)
+    if value > 1:
+        raise argparse.ArgumentTypeError(f"{text!r} must be within 0..1 (e.g. 0.99)")
+    return value
+
+
 def add_parser(sub: argparse._SubParsersAction) -> None:
     tasks = sub.add_parser("tasks", help="make navigation task sets")
     tsub = tasks.add_subparsers(dest="tasks_command", metavar="TASKS_COMMAND")
@@ -30,6 +37,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--obs-size", type=positive_int, default=84, help="camera image side in px")
     p.add_argument("--fov", type=positive_float, default=90.0,
                    help="camera field of view in degrees")
+    p.add_argument("--min-coverage", type=_fraction, default=0.99, metavar="FRACTION",
+                   help="least fraction of valid imagery in the view of a target or start "
+                   "(default 0.99)")
     p.add_argument("--seed", type=nonneg_int, default=0)
     p.add_argument("-o", "--out", required=True, help="task set JSON to write")
     p.set_defaults(handler=run_make)
@@ -45,11 +55,12 @@ def run_make(args: argparse.Namespace) -> int:
     if args.kind == "meta":
         ts = sample_meta_tasks(scene, args.count, size_m=args.size or 150.0, alt_m=args.alt,
                                step_m=args.step, max_steps=args.max_steps or 70, seed=args.seed,
-                               camera=camera)
+                               camera=camera, min_coverage=args.min_coverage)
     else:
         alts = list(args.alts)
         ts = whole_scene_tasks(scene, alts, step_m=args.step, max_steps=args.max_steps or 120,
-                               seed=args.seed, size_m=args.size, camera=camera)
+                               seed=args.seed, size_m=args.size, camera=camera,
+                               min_coverage=args.min_coverage)
     ts.save(args.out)
     t = ts.tasks[0]
     nx, ny = t.lattice.shape

@@ -42,6 +42,9 @@ def add_parsers(tsub: argparse._SubParsersAction) -> None:
                    help="retries per tile on 429/5xx/timeouts (default 4)")
     p.add_argument("--retry-missing", action="store_true",
                    help="ask again for tiles an earlier run found missing (404)")
+    p.add_argument("--verify", action="store_true",
+                   help="decode the tiles already cached for the bbox; bad ones are deleted "
+                   "and fetched again")
     p.set_defaults(handler=run_fetch)
 
     p = tsub.add_parser("info", help="summarise a scene package")
@@ -79,7 +82,7 @@ def run_fetch(args: argparse.Namespace) -> int:
             max_tiles=args.max_tiles, workers=args.workers,
             subdomains=_subdomains(args.subdomains), user_agent=args.user_agent or USER_AGENT,
             timeout_s=args.timeout, retries=args.retries, retry_not_found=args.retry_missing,
-            progress=progress_bar("fetch"))
+            verify=args.verify, progress=progress_bar("fetch"))
     except FetchIncomplete as err:
         r = err.result
         print(f"fetched {r.downloaded}, cached {r.cached}, missing (404) {r.not_found}, "
@@ -87,6 +90,9 @@ def run_fetch(args: argparse.Namespace) -> int:
         for line in r.failures:
             print(f"  {line}")
         raise
+    if args.verify:
+        print(f"verified {result.verified} cached tiles: {result.invalid_removed} were bad, "
+              "deleted and fetched again")
     print(f"{result.total} tiles at zoom {result.zoom}: {result.downloaded} downloaded "
           f"({result.bytes / 1e6:.1f} MB, {result.retries} retries), {result.cached} already "
           f"cached, {result.not_found} missing on the server (404, masked) -> {result.folder}")
