@@ -223,7 +223,14 @@ def one_line_warnings() -> None:
 
 def oserror_line(err: OSError) -> str:
     """An OSError as one line naming the path: 'cannot write out/x: Permission denied'."""
+    import errno
+
     what = err.strerror or str(err)
+    if err.errno in (errno.EEXIST, errno.ENOTDIR):
+        what += " (a file stands where a folder is needed; choose another output path)"
+    elif err.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+        what += " (choose an output path you can write to)"
     if err.filename is not None:
-        return f"{err.filename}: {what}"
+        return f"cannot write {err.filename}: {what}" if err.errno != errno.ENOENT else \
+            f"{err.filename}: {what}"
     return what

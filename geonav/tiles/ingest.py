@@ -304,6 +304,17 @@ def _mask_coverage(mask: np.ndarray, bbox_lonlat: tuple | None) -> list[str]:
     return [f"only {valid:.0%} of the scene has imagery ({why}); the rest is masked"]
 
 
+def check_writable_folder(out: Path) -> None:
+    """IngestError unless ``out`` can be created: fail before the work, not after it."""
+    parent = out.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise IngestError(f"cannot write {out}: {parent} is a file, not a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise IngestError(f"cannot write {out}: no write permission in {parent}")
+
+
 def ingest(
     sources: Sequence[str | os.PathLike[str] | RasterSource],
     *,
@@ -360,6 +371,7 @@ def ingest(
     out = Path(out)
     if out.exists() and not overwrite:
         raise IngestError(f"{out} exists; use --force to replace it")
+    check_writable_folder(out)
     if not name or "/" in name:
         raise IngestError(f"scene name {name!r} must be a non-empty name without '/'")
     if ground_alt_m is not None and not math.isfinite(ground_alt_m):
