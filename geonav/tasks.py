@@ -377,9 +377,17 @@ class TaskSet:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-        with os.fdopen(fd, "w") as f:
-            json.dump(self.to_dict(), f, indent=1)
-        os.replace(tmp, path)
+        try:
+            with os.fdopen(fd, "w") as f:
+                json.dump(self.to_dict(), f, indent=1, allow_nan=False)
+            os.replace(tmp, path)
+        except ValueError as err:  # NaN/inf is not JSON
+            Path(tmp).unlink(missing_ok=True)
+            raise TaskError(f"task set for {self.scene_name!r} holds a non-finite number "
+                            f"({err}); nothing written to {path}") from err
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)  # nothing half-written
+            raise
         return path
 
     @classmethod

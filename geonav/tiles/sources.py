@@ -13,7 +13,9 @@ import os
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from geonav.tiles.mbtiles import read_mbtiles
 from geonav.tiles.raster import RasterSource, open_raster
+from geonav.tiles.xyz import read_xyz
 
 log = logging.getLogger(__name__)
 
@@ -48,13 +50,9 @@ def open_source(
     """
     path = Path(path)
     if path.is_dir():
-        from geonav.tiles.xyz import read_xyz
-
         return read_xyz(path, zoom=zoom, tms=tms, bbox_lonlat=bbox_lonlat, progress=progress,
                         memory_budget_mb=memory_budget_mb)
     if path.suffix.lower() == ".mbtiles":
-        from geonav.tiles.mbtiles import read_mbtiles
-
         if tms:
             log.info("--tms is ignored for %s: MBTiles says its own scheme", path)
         return read_mbtiles(path, zoom=zoom, bbox_lonlat=bbox_lonlat, progress=progress,
