@@ -369,20 +369,33 @@ def test_intact_package_opens(package):
 
 # -- nothing left behind ---------------------------------------------------------------------
 
-def _dead_pid() -> int:
-    proc = subprocess.Popen([sys.executable, "-c", "pass"])
-    proc.wait()
-    return proc.pid
+_KILLED_SAVE = """
+import os, signal, sys
+import numpy as np
+import geonav.scene as scene_mod
+from geonav.geo import LonLat
+from geonav.scene import Scene
+
+def die(*args, **kw):  # the ortho is written, the manifest not yet: SIGKILL now
+    os.kill(os.getpid(), signal.SIGKILL)
+
+scene_mod.sha256_file = die
+rgb = np.full((64, 64, 3), 90, np.uint8)
+Scene.from_arrays("S", rgb, LonLat(4.4777, 51.9244, 2.0), 1.0).save(sys.argv[1])
+"""
 
 
-def test_stale_temp_folder_of_a_killed_run_is_cleaned(tmp_path, utm_tif):
-    stale = tmp_path / f".S.geonav-tmp-{_dead_pid()}-abcd1234"
-    stale.mkdir()
-    (stale / "ortho.tif").write_bytes(b"half written")
+def test_sigkilled_save_leaves_a_temp_folder_the_next_run_cleans(tmp_path, utm_tif):
+    proc = subprocess.run([sys.executable, "-c", _KILLED_SAVE, str(tmp_path / "S")],
+                          capture_output=True, text=True)
+    assert proc.returncode == -9, proc.stderr
+    stale = [p for p in tmp_path.iterdir() if p.name.startswith(".S.geonav-tmp-")]
+    assert len(stale) == 1 and (stale[0] / "ortho.tif").is_file()
+    assert not (tmp_path / "S").exists()
     with pytest.warns(GeonavWarning, match="left by a killed run"):
         ingest([utm_tif], name="S", out=tmp_path / "S", compress="DEFLATE")
-    assert not stale.exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["S"]
+    assert Scene.open(tmp_path / "S").name == "S"
 
 
 def test_failed_save_leaves_nothing(tmp_path, utm_tif):

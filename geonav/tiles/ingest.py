@@ -293,14 +293,19 @@ def check_coverage(scene: Scene, *, obs_size_px: int = 84, fov_deg: float = 90.0
     return messages
 
 
-def _mask_coverage(mask: np.ndarray, bbox_lonlat: tuple | None) -> list[str]:
+def _mask_coverage(mask: np.ndarray, bbox_lonlat: tuple | None,
+                   rotated: bool = False) -> list[str]:
     # The grid hugs the sources, so a few percent of edge pixels can be empty after a
     # reprojection; more than that means missing tiles or a bbox reaching past the data.
     valid = float(mask.mean())
     if valid >= 0.95:
         return []
-    why = ("the bbox reaches beyond the imagery, or tiles are missing or corrupt"
-           if bbox_lonlat is not None else "missing or corrupt tiles, or gaps between sources")
+    if bbox_lonlat is not None:
+        why = "the bbox reaches beyond the imagery, or tiles are missing or corrupt"
+    elif rotated:
+        why = "a source is rotated, so the north-up grid around it has empty corners"
+    else:
+        why = "missing or corrupt tiles, or gaps between sources"
     return [f"only {valid:.0%} of the scene has imagery ({why}); the rest is masked"]
 
 
@@ -434,7 +439,8 @@ def ingest(
         mask_fraction=float(mask.mean()),
         **(extra_manifest or {}),
     )
-    for message in check_coverage(scene) + _mask_coverage(mask, bbox_lonlat):
+    rotated = any(r.transform.b or r.transform.d for r in rasters)
+    for message in check_coverage(scene) + _mask_coverage(mask, bbox_lonlat, rotated):
         warnings.warn(f"scene {name}: {message}", GeonavWarning, stacklevel=2)
     scene.save(out, overwrite=overwrite, compress=compress)
     if progress:
