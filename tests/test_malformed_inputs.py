@@ -672,3 +672,10 @@ def test_verify_drops_a_bad_cached_tile_and_fetches_it_again(tmp_path, one_tile)
         checked = fetch_tiles(url, bbox, Z, cache, timeout_s=2.0, verify=True, **FAST)
     assert (checked.verified, checked.invalid_removed, checked.downloaded) == (1, 1, 1)
     assert bad.read_bytes() == png
+
+
+def test_raster_outside_its_crs_domain_is_one_line(tmp_path, capsys):
+    path = _write(tmp_path / "far.tif", _texture(10, 10), UTM31, Affine(1, 0, 5e7, 0, -1, 5e7))
+    rc, _, err = _cli(["tiles", "ingest", path, "--name", "F", "--out", tmp_path / "s"], capsys)
+    _one_line_error(rc, err)
+    assert "outside the valid area of its CRS" in err and not (tmp_path / "s").exists()

@@ -122,7 +122,15 @@ def source_bounds_lonlat(src: RasterSource) -> tuple[float, float, float, float]
     """(west, south, east, north) of the source; west > east when it crosses 180 degrees."""
     from rasterio.warp import transform_bounds
 
-    return tuple(transform_bounds(src.crs, "EPSG:4326", *src.bounds(), densify_pts=21))
+    try:
+        box = tuple(transform_bounds(src.crs, "EPSG:4326", *src.bounds(), densify_pts=21))
+    except Exception as err:  # noqa: BLE001 - PROJ cannot place it on the globe
+        raise IngestError(f"{src.info.get('file', 'a source')}: its extent cannot be turned "
+                          f"into lon/lat ({err}); check its CRS and geotransform") from err
+    if not all(map(math.isfinite, box)):
+        raise IngestError(f"{src.info.get('file', 'a source')}: its extent lies outside the "
+                          "valid area of its CRS; check its CRS and geotransform")
+    return box
 
 
 # -- reading GDAL rasters --------------------------------------------------------------------
@@ -188,8 +196,15 @@ def _window_for(src: Any, bbox_lonlat: Sequence[float] | None, path: Path):
     full = Window(0, 0, src.width, src.height)
     if bbox_lonlat is None:
         return full
-    left, bottom, right, top = transform_bounds("EPSG:4326", src.crs, *bbox_lonlat,
-                                                densify_pts=21)
+    try:
+        left, bottom, right, top = transform_bounds("EPSG:4326", src.crs, *bbox_lonlat,
+                                                    densify_pts=21)
+    except Exception as err:  # noqa: BLE001 - outside the CRS's domain, PROJ errors
+        raise NoOverlap(f"bbox {tuple(bbox_lonlat)} cannot be projected into the CRS of "
+                        f"{path.name} ({err}); is it lon,lat near the data?") from err
+    if not all(map(math.isfinite, (left, bottom, right, top))):
+        raise NoOverlap(f"bbox {tuple(bbox_lonlat)} lies outside the valid area of the CRS "
+                        f"of {path.name}")
     inv = ~src.transform
     cols, rows = zip(*(inv @ (x, y) for x in (left, right) for y in (bottom, top)), strict=True)
     c0, c1 = max(0, math.floor(min(cols)) - 2), min(src.width, math.ceil(max(cols)) + 2)
