@@ -238,6 +238,18 @@ def parse_config(data: dict[str, Any], source: str = "") -> ExperimentConfig:
     unknown = sorted(set(data) - known)
     if unknown:
         raise ConfigError(f"{source}: unknown top-level key(s) {unknown}; known: {sorted(known)}")
+    for key in ("convergence", "scenes", "tasks", "stages", "flight"):
+        if key in data and not isinstance(data[key], dict):
+            raise ConfigError(f"{source}: [{key}] must be a table, got "
+                              f"{type(data[key]).__name__} {data[key]!r}")
+    for key in ("scenes", "tasks", "stages"):
+        for name, value in data.get(key, {}).items():
+            if not isinstance(value, dict):
+                raise ConfigError(f"{source}: [{key}.{name}] must be a table, got "
+                                  f"{type(value).__name__} {value!r}")
+    compare = data.get("compare", [])
+    if not isinstance(compare, list) or not all(isinstance(c, dict) for c in compare):
+        raise ConfigError(f"{source}: compare must be [[compare]] tables")
     try:
         conv = ConvergenceCriterion(**data.get("convergence", {}))
     except (TypeError, ValueError) as err:
