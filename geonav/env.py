@@ -129,8 +129,7 @@ class GeoNavEnv(gym.Env[dict[str, np.ndarray], np.int64]):
         self.render_mode = render_mode
         self.renderer = SliceRenderer(self.scene, self.camera)
         n = self.camera.size_px
-        image_space = spaces.Box(0, 255, (n, n, 3), np.uint8)
-        self.observation_space = spaces.Dict({"image": image_space, "target": image_space})
+        self.observation_space = self._observation_space()
         self.action_space = spaces.Discrete(len(ACTION_MOVES))
         self.action_meanings = ACTION_MEANINGS
         self._starts: list[list[Cell] | None] = [None] * len(self.task_maps)
@@ -150,15 +149,25 @@ class GeoNavEnv(gym.Env[dict[str, np.ndarray], np.int64]):
         p = tm.lattice.center(cell)
         return self.renderer.view(p.x_m, p.y_m, tm.task.alt_m)
 
+    def _observation_space(self) -> spaces.Dict:
+        n = self.camera.size_px
+        image_space = spaces.Box(0, 255, (n, n, 3), np.uint8)
+        return spaces.Dict({"image": image_space, "target": image_space})
+
     def __getstate__(self) -> dict[str, Any]:
-        # the renderer holds only references to the scene's shared maps: rebuilt on load
+        # what can be rebuilt from the scene and the camera is left out: the renderer (it
+        # holds references to the scene's shared maps), the target view and the Box spaces
+        # (their bounds are two arrays of the image's size each)
         state = self.__dict__.copy()
-        state.pop("renderer", None)
+        for key in ("renderer", "_target_obs", "observation_space"):
+            state.pop(key, None)
         return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.__dict__.update(state)
         self.renderer = SliceRenderer(self.scene, self.camera)
+        self.observation_space = self._observation_space()
+        self._target_obs = self.observation_at(self._ti, self._tm.task.target_cell).copy()
 
     def max_steps_of(self, task_index: int) -> int:
         return self.max_steps_override or self.task_maps[task_index].task.max_steps
