@@ -96,9 +96,15 @@ class SliceRenderer:
         self.scene = scene
         self.camera = camera or Camera()
         self.fill = int(fill)
-        shared: dict[tuple[Camera, int], dict[float, _AltitudeMap]] = \
+        # shared per scene object; a scene whose rgb or mask was replaced starts afresh
+        shared: dict[tuple[Camera, int], tuple[np.ndarray, np.ndarray,
+                                                dict[float, _AltitudeMap]]] = \
             scene.__dict__.setdefault("_slice_maps", {})
-        self._maps: dict[float, _AltitudeMap] = shared.setdefault((self.camera, self.fill), {})
+        key = (self.camera, self.fill)
+        entry = shared.get(key)
+        if entry is None or entry[0] is not scene.rgb or entry[1] is not scene.mask:
+            entry = shared[key] = (scene.rgb, scene.mask, {})
+        self._maps: dict[float, _AltitudeMap] = entry[2]
 
     def _map(self, alt_m: float) -> _AltitudeMap:
         key = float(alt_m)

@@ -230,6 +230,7 @@ class Scene:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
         self.manifest, self.path = manifest, out
+        self.__dict__.pop("_mapped", None)  # the arrays are not the new package's decoding
         log.info("wrote scene %s to %s (%dx%d px at %.3f m)", self.name, out, self.width,
                  self.height, self.gsd_m)
         return out
@@ -378,7 +379,8 @@ def read_manifest(folder: Path) -> dict[str, Any]:
 CACHE_ENV = "GEONAV_CACHE_DIR"
 """Environment variable: the folder for decoded rasters of every package (default: a
 ``.geonav-cache`` folder inside each package, or ``$XDG_CACHE_HOME/geonav`` when the
-package is read-only)."""
+package is read-only). ``GEONAV_RASTER_CACHE=0`` turns the cache off: rasters are then
+decoded into each process's memory, as before (more memory per worker, no disk used)."""
 PACKAGE_CACHE = ".geonav-cache"
 
 
@@ -419,6 +421,10 @@ def cached_array(path: Path, build: Callable[[], np.ndarray]) -> np.ndarray:
     Memory-mapped pages belong to the page cache: every process that maps the same
     file shares them, which is what keeps vector-env workers light.
     """
+    if os.environ.get("GEONAV_RASTER_CACHE") == "0":
+        arr = np.ascontiguousarray(build())
+        arr.flags.writeable = False
+        return arr
     if path.is_file():
         try:
             return np.asarray(np.load(path, mmap_mode="r"))
