@@ -144,7 +144,11 @@ class GeoNavEnv(gym.Env[dict[str, np.ndarray], np.int64]):
 
     # -- observations and pickling -------------------------------------------------------
     def observation_at(self, task_index: int, cell: Cell) -> np.ndarray:
-        """The (N, N, 3) view at a cell of a task: a read-only view of the shared map."""
+        """The (N, N, 3) uint8 view at a cell of a task (a new array)."""
+        return self._view(task_index, cell).copy()
+
+    def _view(self, task_index: int, cell: Cell) -> np.ndarray:
+        """The same view as a read-only slice of the shared altitude map (no copy)."""
         tm = self.task_maps[task_index]
         p = tm.lattice.center(cell)
         return self.renderer.view(p.x_m, p.y_m, tm.task.alt_m)
@@ -167,7 +171,7 @@ class GeoNavEnv(gym.Env[dict[str, np.ndarray], np.int64]):
         self.__dict__.update(state)
         self.renderer = SliceRenderer(self.scene, self.camera)
         self.observation_space = self._observation_space()
-        self._target_obs = self.observation_at(self._ti, self._tm.task.target_cell).copy()
+        self._target_obs = self.observation_at(self._ti, self._tm.task.target_cell)
 
     def max_steps_of(self, task_index: int) -> int:
         return self.max_steps_override or self.task_maps[task_index].task.max_steps
@@ -214,7 +218,7 @@ class GeoNavEnv(gym.Env[dict[str, np.ndarray], np.int64]):
         self._start = self._cell = start
         self._steps = 0
         self._track = [start]
-        self._target_obs = self.observation_at(ti, self._tm.task.target_cell).copy()
+        self._target_obs = self.observation_at(ti, self._tm.task.target_cell)
         return self._observation(), self._info(collided=False)
 
     def _choose_task(self, requested: Any) -> int:
@@ -254,7 +258,7 @@ class GeoNavEnv(gym.Env[dict[str, np.ndarray], np.int64]):
         return self._observation(), reward, terminated, truncated, self._info(collided)
 
     def _observation(self) -> dict[str, np.ndarray]:
-        return {"image": self.observation_at(self._ti, self._cell).copy(),
+        return {"image": self._view(self._ti, self._cell).copy(),
                 "target": self._target_obs.copy()}
 
     def _info(self, collided: bool) -> dict[str, Any]:
@@ -282,7 +286,7 @@ class GeoNavEnv(gym.Env[dict[str, np.ndarray], np.int64]):
         if self.render_mode != "rgb_array":
             return None
         side = 168
-        view = cv2.resize(self.observation_at(self._ti, self._cell), (side, side),
+        view = cv2.resize(self._view(self._ti, self._cell), (side, side),
                           interpolation=cv2.INTER_NEAREST)
         target = cv2.resize(self._target_obs, (side, side), interpolation=cv2.INTER_NEAREST)
         cv2.rectangle(target, (0, 0), (side - 1, side - 1), (255, 60, 60), 2)

@@ -167,6 +167,10 @@ class Scene:
         now = (self.rgb, self.mask, self.dsm)
         return all(a is b for a, b in zip(now, mapped, strict=True))
 
+    def __getstate__(self) -> dict[str, Any]:
+        # caches (render maps, renderers) are rebuilt where the scene lands
+        return {k: v for k, v in self.__dict__.items() if not k.startswith("_")}
+
     def __reduce_ex__(self, protocol: Any) -> Any:
         if self.is_mapped():
             return (open_shared, (str(self.path),))
