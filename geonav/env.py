@@ -133,6 +133,7 @@ class GeoNavEnv(gym.Env[dict[str, np.ndarray], np.int64]):
         self.action_space = spaces.Discrete(len(ACTION_MOVES))
         self.action_meanings = ACTION_MEANINGS
         self._starts: list[list[Cell] | None] = [None] * len(self.task_maps)
+        self._views: list[dict[Cell, np.ndarray]] = [{} for _ in self.task_maps]
         self._cycle = -1
         self._tm: TaskMap = self.task_maps[0]
         self._ti = 0
@@ -148,10 +149,18 @@ class GeoNavEnv(gym.Env[dict[str, np.ndarray], np.int64]):
         return self._view(task_index, cell).copy()
 
     def _view(self, task_index: int, cell: Cell) -> np.ndarray:
-        """The same view as a read-only slice of the shared altitude map (no copy)."""
-        tm = self.task_maps[task_index]
-        p = tm.lattice.center(cell)
-        return self.renderer.view(p.x_m, p.y_m, tm.task.alt_m)
+        """The same view as a read-only slice of the shared altitude map (no copy).
+
+        The slices are kept per cell (an array header each, not the pixels), so a step
+        costs a dict look-up as the old per-cell pixel cache did.
+        """
+        views = self._views[task_index]
+        view = views.get(cell)
+        if view is None:
+            tm = self.task_maps[task_index]
+            p = tm.lattice.center(cell)
+            view = views[cell] = self.renderer.view(p.x_m, p.y_m, tm.task.alt_m)
+        return view
 
     def _observation_space(self) -> spaces.Dict:
         n = self.camera.size_px
@@ -159,17 +168,18 @@ class GeoNavEnv(gym.Env[dict[str, np.ndarray], np.int64]):
         return spaces.Dict({"image": image_space, "target": image_space})
 
     def __getstate__(self) -> dict[str, Any]:
-        # what can be rebuilt from the scene and the camera is left out: the renderer (it
-        # holds references to the scene's shared maps), the target view and the Box spaces
-        # (their bounds are two arrays of the image's size each)
+        # what can be rebuilt from the scene and the camera is left out: the renderer and
+        # the per-cell slices (references into the scene's shared maps), the target view
+        # and the Box spaces (their bounds are two arrays of the image's size each)
         state = self.__dict__.copy()
-        for key in ("renderer", "_target_obs", "observation_space"):
+        for key in ("renderer", "_views", "_target_obs", "observation_space"):
             state.pop(key, None)
         return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.__dict__.update(state)
         self.renderer = SliceRenderer(self.scene, self.camera)
+        self._views = [{} for _ in self.task_maps]
         self.observation_space = self._observation_space()
         self._target_obs = self.observation_at(self._ti, self._tm.task.target_cell)
 
