@@ -73,11 +73,11 @@ class DictImageObservation(gym.ObservationWrapper[dict[str, np.ndarray], Any, An
         self.keys = tuple(keys)
         out = dict(space.spaces)
         for key in self.keys:
-            h, w = self.shape or space.spaces[key].shape[:2]
+            h, w = self.shape or tuple(space.spaces[key].shape or (0, 0))[:2]
             dims: tuple[int, ...] = (h, w, 3) if not self.grey else \
                 ((h, w, 1) if self.keep_dim else (h, w))
             out[key] = spaces.Box(0, 255, dims, np.uint8)
-        self.observation_space = spaces.Dict(out)
+        self.observation_space = spaces.Dict(out)  # type: ignore[assignment]
 
     def _image(self, img: np.ndarray) -> np.ndarray:
         if self.shape is not None and img.shape[:2] != self.shape:

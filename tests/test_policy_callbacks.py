@@ -78,8 +78,8 @@ def test_tensorboard_sb3_tags_against_env_steps(tmp_path):
     records = _records(5)
     for r in records:
         tb.on_episode(r)
-    tb.on_eval(dict(mean_reward=4.5, mean_ep_length=12.0, success_rate=0.75, spl=0.6,
-                    env_steps=records[-1]["env_steps"]))
+    tb.on_eval(dict(episode=5, env_steps=records[-1]["env_steps"], starts=8, greedy_sr=0.75,
+                    greedy_spl=0.6, sampled_sr=0.5, sampled_spl=float("nan")))
     tb.on_train_end(None)
     s = _scalars(tmp_path / "tb")
     steps = [r["env_steps"] for r in records]
@@ -89,8 +89,9 @@ def test_tensorboard_sb3_tags_against_env_steps(tmp_path):
     assert s["rollout/ep_rew_mean"][0][1] == pytest.approx(records[0]["return"])
     assert s["train/entropy_loss"][0][1] == pytest.approx(-1.3)  # SB3: minus the entropy
     assert s["eval/success_rate"] == [(steps[-1], 0.75)]
-    assert {"train/policy_loss", "train/value_loss", "eval/mean_reward",
-            "eval/mean_ep_length", "time/episodes"} <= set(s)
+    assert s["eval/sampled_success_rate"] == [(steps[-1], 0.5)]
+    assert "eval/sampled_spl" not in s  # NaN is not plotted
+    assert {"train/policy_loss", "train/value_loss", "eval/spl", "time/episodes"} <= set(s)
     assert not [t for t in s if t.startswith("episode/")]
 
 

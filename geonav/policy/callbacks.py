@@ -42,10 +42,6 @@ class Callback:
     def on_checkpoint(self, path: Path, episodes: int) -> None:
         """A checkpoint was written."""
 
-    def on_eval(self, stats: dict[str, Any]) -> None:
-        """An evaluation finished: ``mean_reward``, ``mean_ep_length``, ``success_rate``,
-        optional ``spl`` and ``env_steps`` (the running total at the evaluation)."""
-
     def on_train_end(self, result: Any) -> None:
         """Training finished (``result`` is the trainer's result object)."""
 
@@ -92,8 +88,8 @@ class TensorBoardMetrics(Callback):
       ``rollout/spl_mean`` and ``rollout/collisions_mean``;
     * ``train/policy_loss``, ``train/value_loss``, ``train/entropy_loss`` (minus the
       mean entropy, SB3's sign) of each episode's update;
-    * ``eval/mean_reward``, ``eval/mean_ep_length``, ``eval/success_rate`` (and
-      ``eval/spl``) from :meth:`on_eval`, as SB3's ``EvalCallback`` writes them;
+    * ``eval/success_rate`` (and geonav's ``eval/spl``, ``eval/sampled_*``) from
+      :meth:`on_eval`, as SB3's ``EvalCallback`` names them;
     * ``time/episodes``: episodes so far.
 
     The x-axis is the running total of env steps: the record's ``env_steps`` when it is a
@@ -148,13 +144,25 @@ class TensorBoardMetrics(Callback):
                 add(tag, sign * float(record[key]), x)
         add("time/episodes", self.episodes, x)
 
-    def on_eval(self, stats: dict[str, Any]) -> None:
-        x = int(stats.get("env_steps") or self.env_steps)
-        for tag, key in (("eval/mean_reward", "mean_reward"),
-                         ("eval/mean_ep_length", "mean_ep_length"),
-                         ("eval/success_rate", "success_rate"), ("eval/spl", "spl")):
-            if stats.get(key) is not None:
-                self.writer.add_scalar(tag, float(stats[key]), x)
+    def on_eval(self, row: dict[str, Any]) -> None:
+        """A periodic evaluation row (``geonav.policy.evaluation.EVAL_FIELDS``).
+
+        The greedy policy's figures go under SB3's ``EvalCallback`` names (it evaluates
+        deterministically by default): ``eval/success_rate``, plus ``eval/spl`` and
+        ``eval/length_ratio``; the sampled policy's under ``eval/sampled_*``; and
+        ``eval/mean_reward``, ``eval/mean_ep_length`` when the row has them.
+        """
+        x = int(row.get("env_steps") or self.env_steps)
+        for tag, key in (("eval/success_rate", "greedy_sr"), ("eval/spl", "greedy_spl"),
+                         ("eval/length_ratio", "greedy_length_ratio"),
+                         ("eval/collisions", "greedy_collisions"),
+                         ("eval/sampled_success_rate", "sampled_sr"),
+                         ("eval/sampled_spl", "sampled_spl"),
+                         ("eval/mean_reward", "mean_reward"),
+                         ("eval/mean_ep_length", "mean_ep_length")):
+            value = row.get(key)
+            if value is not None and value == value:  # NaN: nothing to plot
+                self.writer.add_scalar(tag, float(value), x)
 
     def on_train_end(self, result: Any) -> None:
         self.close()
