@@ -135,6 +135,7 @@ def test_tiny_experiment_end_to_end(tmp_path):
     assert Path(result["checkpoint"]).exists() and result["eval"]["starts"] == 8
     assert 0.0 < result["eval"]["random_walk_sr"] < 1.0 and "zero_shot" in result["eval"]
     assert "Chance on this task" in report and "Verdict (greedy-evaluation rule)" in report
+    assert "IQM" in report and "stratified-bootstrap" in report
     assert "### Starting stage `pre`" in report
     assert (root / "units/transfer/seed-0/eval.csv").read_text().startswith("episode,")
     # the transferred policy flew its task through the MAVLink emulator, and landed

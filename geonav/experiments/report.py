@@ -101,6 +101,28 @@ def unit_stats(root: Path, unit: Unit, criterion: ConvergenceCriterion) -> dict[
     )
 
 
+def _seed_stats(results: list[Any]) -> dict[str, Any] | None:
+    """IQM and bootstrap CIs of e* over seeds (geonav.experiments.stats; None without the
+    ``stats`` extra or runs)."""
+    if not results:
+        return None
+    from geonav.errors import MissingExtra
+    from geonav.experiments.stats import seed_summary
+
+    try:
+        return seed_summary([r.value() for r in results], [r.censored for r in results])
+    except MissingExtra:
+        return None
+
+
+def _fmt_iqm(st: dict[str, Any] | None) -> str:
+    if not st or st.get("iqm") is None:
+        return ""
+    lo, hi = st["iqm_ci"]
+    plus = "+" if st.get("iqm_censored") else ""
+    return f"; IQM {st['iqm']:.0f}{plus} (95% CI {lo:.0f}-{hi:.0f})"
+
+
 def _fmt_conv(s: dict[str, Any]) -> str:
     if s["n"] == 0:
         return "n/a"
@@ -226,11 +248,14 @@ def _comparison(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
         zs = [e["zero_shot"]["greedy_sr"] for e in ev if e.get("zero_shot")]
         zs_med = _median(zs)
         ratio = _median([e.get("greedy_length_ratio") for e in ev])
-        cell = _fmt_conv(conv)
+        st_train = _seed_stats([s["conv"] for s in stats])
+        st_eval = _seed_stats([s["eval_conv"] for s in stats])
+        cell = _fmt_conv(conv) + _fmt_iqm(st_train)
         if conv_total is not None:
             cell += f" (incl. earlier stages: {_fmt_conv(conv_total)})"
         lines.append(
-            f"| {m} | {cell} | {_fmt_conv(econv)} | {conv['censored']}/{conv['n']} / "
+            f"| {m} | {cell} | {_fmt_conv(econv) + _fmt_iqm(st_eval)} | "
+            f"{conv['censored']}/{conv['n']} / "
             f"{econv['censored']}/{econv['n']} | {_f(g_sr)} / {_f(g_spl)} | "
             f"{_f(s_sr)} / {_f(s_spl)} | "
             f"{_f(zs_med) + (f' [{min(zs):.2f}-{max(zs):.2f}]' if zs else '')} | "
@@ -241,6 +266,7 @@ def _comparison(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
                 cens[rule][m] = bool(c["median_censored"])
         record["methods"][m] = dict(
             convergence=conv, eval_convergence=econv, convergence_incl_parents=conv_total,
+            convergence_stats=st_train, eval_convergence_stats=st_eval,
             wall_to_convergence_s=wall, final_greedy_sr=g_sr, final_greedy_spl=g_spl,
             final_sampled_sr=s_sr, final_sampled_spl=s_spl, zero_shot_greedy_sr=zs_med,
             greedy_length_over_shortest=ratio,
@@ -248,8 +274,9 @@ def _comparison(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
             runs=[dict(seed=s["seed"], conv=s["conv"], eval_conv=s["eval_conv"],
                        episodes=s["episodes"], eval=s["eval"],
                        wall_total_s=s["wall_total_s"]) for s in stats])
-    lines += ["", "`+`: censored median (at least half the runs never met the rule within "
-              "their budget; a censored run counts at its budget, a lower bound).", ""]
+    lines += ["", "median [min-max] over seeds; IQM: interquartile mean with a 95 % "
+              "stratified-bootstrap interval (rliable). `+`: a lower bound (censored runs, "
+              "which never met the rule within their budget, count at their budget).", ""]
     if len(comp.methods) >= 2:
         a, b = comp.methods[:2]
         record["ratio"], record["eval_ratio"] = None, None
