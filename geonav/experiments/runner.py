@@ -226,6 +226,7 @@ def run_unit(payload: dict[str, Any]) -> dict[str, Any]:
             (out / ERROR).write_text(traceback.format_exc())
             raise
         result["wall_s_this_session"] = time.time() - t0
+        result["worker"] = {"host": socket.gethostname(), "pid": os.getpid()}
         _write_json(out / RESULT, result)
     return result
 
