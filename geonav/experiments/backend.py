@@ -10,10 +10,12 @@ runner only needs :class:`Backend`: ``attach`` sees the run folder once,
   (``PR_SET_PDEATHSIG`` on Linux, plus a parent-pid poll everywhere), so a
   SIGKILLed runner leaves nothing training.
 * :class:`RayBackend` runs each unit as a Ray task (``num_cpus`` from the
-  stage's workers, ``num_gpus`` when asked) in a fresh worker process
-  (``max_calls=1``). The run folder must be on a filesystem that every Ray
-  node sees at the same absolute path: workers write checkpoints, metrics and
-  ``result.json`` straight into it; ``attach`` checks that from every node.
+  stage's workers, ``num_gpus`` when asked; Ray reuses its worker processes
+  between units as the local pool does). The run folder must be on a
+  filesystem that every Ray node sees at the same absolute path: workers
+  write checkpoints, metrics and ``result.json`` straight into it, the driver
+  only the config, inputs and report; ``attach`` checks the folder from every
+  node. Tasks belong to the driver: when it dies, Ray stops them.
 
 A unit whose process dies (killed, out of memory, node lost) fails its future
 with :class:`WorkerLost`; the runner retries it from its last checkpoint.
@@ -302,7 +304,7 @@ class RayBackend:
             options["runtime_env"] = self.runtime_env
         remote = self._remotes.get(fn)
         if remote is None:
-            remote = self._remotes[fn] = ray.remote(max_calls=1)(fn)
+            remote = self._remotes[fn] = ray.remote(fn)
         ref = remote.options(**options).remote(*args)
         out: Future = Future()
         with self._lock:

@@ -31,6 +31,7 @@ at once: the second one fails with :class:`UnitLocked`.
 from __future__ import annotations
 
 import fcntl
+import hashlib
 import json
 import logging
 import os
@@ -40,7 +41,7 @@ import traceback
 from collections.abc import Callable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Future, wait
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -92,17 +93,30 @@ def unit_dir(root: Path, unit: Unit) -> Path:
 
 
 def prepare_inputs(cfg: ExperimentConfig, root: Path,
-                   progress: Callable[[str, float], None] | None = None
+                   progress: Callable[[str, float], None] | None = None,
+                   shared_root: Path | None = None
                    ) -> tuple[dict[str, str], dict[str, str]]:
-    """Make (or reuse) the scene packages and task sets; returns key -> path maps."""
+    """Make (or reuse) the scene packages and task sets; returns key -> path maps.
+
+    ``shared_root`` (a sweep's folder): inputs go there under names that carry a hash
+    of their spec, so variants with the same scene or task set share one copy.
+    """
     from geonav.demo import ensure_scene
+
+    base = root if shared_root is None else shared_root
+
+    def name(key: str, spec: Any, extra: str = "") -> str:
+        if shared_root is None:
+            return key
+        blob = json.dumps([asdict(spec), extra], sort_keys=True, default=str)
+        return f"{key}-{hashlib.sha1(blob.encode()).hexdigest()[:8]}"
 
     scenes: dict[str, str] = {}
     for key, spec in cfg.scenes.items():
         if spec.path:
             scenes[key] = str(Path(spec.path).resolve())
         else:
-            out = root / "scenes" / key
+            out = base / "scenes" / name(key, spec)
             ensure_scene(out, key, spec.synthetic or "residential", spec.seed, spec.size_m,
                          spec.gsd_m, progress=progress)
             scenes[key] = str(out.resolve())
@@ -111,8 +125,9 @@ def prepare_inputs(cfg: ExperimentConfig, root: Path,
         if tspec.path:
             tasks[key] = str(Path(tspec.path).resolve())
             continue
-        out = root / "tasks" / f"{key}.json"
+        out = base / "tasks" / f"{name(key, tspec, scenes[tspec.scene])}.json"
         if not out.exists():
+            out.parent.mkdir(parents=True, exist_ok=True)
             make_taskset(tspec, scenes[tspec.scene]).save(out)
         tasks[key] = str(out.resolve())
     return scenes, tasks
@@ -247,7 +262,8 @@ class _Run:
 
 
 def _open_run(cfg: ExperimentConfig, out_root: str | os.PathLike[str], only: list[str] | None,
-              progress: Callable[[str, float], None] | None) -> _Run:
+              progress: Callable[[str, float], None] | None,
+              shared_inputs: Path | None = None) -> _Run:
     root = Path(out_root).resolve() / cfg.name
     root.mkdir(parents=True, exist_ok=True)
     previous = _read_json(root / "config.json")
@@ -256,7 +272,7 @@ def _open_run(cfg: ExperimentConfig, out_root: str | os.PathLike[str], only: lis
         raise ConfigError(f"{root} holds a run of a different config; use another name or "
                           "remove the folder")
     _write_json(root / "config.json", resolved)
-    scenes, tasks = prepare_inputs(cfg, root, progress)
+    scenes, tasks = prepare_inputs(cfg, root, progress, shared_inputs)
     stage_keys = cfg.stages_for(only)
     units = [Unit(s, seed) for s in stage_keys for seed in cfg.seeds]
     return _Run(cfg, root, stage_keys, units, scenes, tasks)
@@ -304,17 +320,21 @@ def run_experiments(
     on_event: Callable[[UnitEvent], None] | None = None,
     progress: Callable[[str, float], None] | None = None,
     report: bool = True,
+    shared_inputs: str | os.PathLike[str] | None = None,
 ) -> list[dict[str, Any]]:
     """Run several experiments (a sweep's variants) through one backend at once.
 
     Units of all the experiments share the backend's slots; each experiment keeps its
     own folder ``out_root/cfg.name`` and report. Returns the summaries in order. The
     backend and the retry budget come from the first config unless given.
+    ``shared_inputs``: one folder for the scenes and task sets of all of them (see
+    :func:`prepare_inputs`).
     """
     if not cfgs:
         return []
     spec = cfgs[0].backend
-    runs = [_open_run(cfg, out_root, only, progress) for cfg in cfgs]
+    shared = None if shared_inputs is None else Path(shared_inputs).resolve()
+    runs = [_open_run(cfg, out_root, only, progress, shared) for cfg in cfgs]
     retries_allowed = spec.max_retries if max_retries is None else max_retries
     total = sum(len(r.units) for r in runs)
     for run in runs:

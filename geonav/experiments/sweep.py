@@ -9,8 +9,9 @@ backend, locks, retries and resume as a single experiment (no separate
 scheduler). Seeds apply inside every variant (``--seeds``), so each point
 gets its medians over seeds.
 
-Folder ``out/NAME-sweep/``: one run folder per point, plus ``sweep.json``
-and ``sweep.md`` (a row per point, comparison and method).
+Folder ``out/NAME-sweep/``: one run folder per point, ``inputs/`` (the
+scenes and task sets, one copy per distinct spec, shared by the points), and
+``sweep.json`` and ``sweep.md`` (a row per point, comparison and method).
 """
 
 from __future__ import annotations
@@ -123,7 +124,8 @@ def run_sweep(path: str | os.PathLike[str], params: list[str],
         variants = [(p, configure(c)) for p, c in variants]
     summaries = run_experiments([c for _, c in variants], out_root, only=only, jobs=jobs,
                                 backend=backend, max_retries=max_retries, on_event=on_event,
-                                progress=progress)
+                                progress=progress,
+                                shared_inputs=Path(out_root) / name / "inputs")
     keys = list(variants[0][0])
     rows = []
     for (point, cfg), summary in zip(variants, summaries, strict=True):
