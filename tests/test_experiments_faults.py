@@ -266,7 +266,11 @@ def test_sweep_runs_a_grid_through_one_backend_with_one_table(tmp_path):
     assert record["folder"] == str(folder)
     assert [(r["stages.pre.lr"], r["method"], r["n"]) for r in record["rows"]] == \
         [(0.001, "pre", 2), (0.01, "pre", 2)]
-    variants = sorted(p.name for p in folder.iterdir() if p.is_dir())
+    variants = sorted(p.name for p in folder.iterdir() if p.is_dir() and p.name != "inputs")
+    # the points share one copy of their (identical) scene and task set
+    assert len(list((folder / "inputs" / "scenes").iterdir())) == 1
+    assert len(list((folder / "inputs" / "tasks").glob("*.json"))) == 1
+    assert not (folder / variants[0] / "scenes").exists()
     assert variants == ["lr=0.001,max_grad_norm=20.0", "lr=0.01,max_grad_norm=20.0"]
     for v, lr in zip(variants, (0.001, 0.01), strict=True):
         for seed in (0, 1):
