@@ -315,3 +315,23 @@ def test_sweep_key_must_name_a_table(tmp_path):
     assert name == "faults-sweep"
     assert [c.name for _, c in variants] == ["faults-sweep/lr=0.001", "faults-sweep/lr=0.01"]
     assert [c.stages["pre"].options["lr"] for _, c in variants] == [0.001, 0.01]
+
+
+def _cli(cwd: Path, *args: str, pre: str = "") -> subprocess.CompletedProcess:
+    code = f"import sys\n{pre}\nfrom geonav.cli import main\nsys.exit(main({list(args)!r}))"
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=120, cwd=cwd)
+
+
+def test_cli_backend_options_fail_in_one_line(tmp_path):
+    tiny = str(Path(__file__).resolve().parent.parent / "configs" / "tiny.toml")
+    r = _cli(tmp_path, "experiment", "run", tiny, "--backend", "local", "--address", "auto")
+    assert r.returncode == 2
+    assert r.stderr.strip().splitlines()[-1] == \
+        "geonav: error: --address names a Ray cluster: use it with --backend ray"
+    # without the extra, --backend ray names it (ray hidden from the import system)
+    r = _cli(tmp_path, "experiment", "sweep", tiny, "--param", "stages.pre.lr=1e-3", "--backend", "ray",
+             pre="sys.modules['ray'] = None")
+    assert r.returncode == 2
+    assert "pip install 'geonav[ray]'" in r.stderr.strip().splitlines()[-1]
+    assert not (tmp_path / "runs").exists()  # it stopped before making anything

@@ -160,11 +160,11 @@ def test_killed_driver_leaves_nothing_running_on_the_cluster(tmp_path, ray_clust
                                                                  "episodes = 50000")
     (tmp_path / "long.toml").write_text(text)
     env = {**os.environ, **RAY_ENV}
+    log = (tmp_path / "driver.log").open("w")
     driver = subprocess.Popen(
         [sys.executable, "-m", "geonav.cli", "experiment", "run", str(tmp_path / "long.toml"),
          "--out", "runs", "--address", ray_cluster, "--only", "transfer", "--fly", "no"],
-        cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-        start_new_session=True)
+        cwd=tmp_path, env=env, stdout=log, stderr=log, start_new_session=True)
     units = tmp_path / "runs" / "tiny" / "units"
     try:
         deadline, pids = time.time() + 120, {}
@@ -174,7 +174,7 @@ def test_killed_driver_leaves_nothing_running_on_the_cluster(tmp_path, ray_clust
                 if lock and _rows(units / stage / "seed-0" / "metrics.csv") > 5:
                     pids[stage] = int(lock["pid"])
             time.sleep(0.2)
-        assert len(pids) == 2, driver.stderr.read()[-3000:] if driver.poll() else pids
+        assert len(pids) == 2, (tmp_path / "driver.log").read_text()[-3000:]
         os.kill(driver.pid, signal.SIGKILL)
         driver.wait()
         deadline = time.time() + 30
@@ -187,7 +187,7 @@ def test_killed_driver_leaves_nothing_running_on_the_cluster(tmp_path, ray_clust
     finally:
         if driver.poll() is None:
             os.killpg(driver.pid, signal.SIGKILL)
-        driver.stderr.close()
+        log.close()
 
 
 def _alive(pid: int) -> bool:

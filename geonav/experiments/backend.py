@@ -185,6 +185,9 @@ class LocalBackend:
         self._slots.append(_Slot())
 
     def _settle(self, slot: _Slot, pids: list[int], inner: Future, out: Future) -> None:
+        if inner.cancelled():  # dropped by shutdown(cancel=True) before it started
+            out.cancel()
+            return
         exc = inner.exception()
         if isinstance(exc, BrokenProcessPool):
             for pid in pids:  # whatever the dead worker had started
@@ -327,7 +330,7 @@ class RayBackend:
             out.set_exception(WorkerLost(f"the Ray worker running the unit died: {err}"))
         except rex.TaskCancelledError as err:
             out.set_exception(BackendError(f"the unit was cancelled: {err}"))
-        except BaseException as err:  # noqa: BLE001 - handed to the runner through the future
+        except BaseException as err:  # anything else reaches the runner through the future
             out.set_exception(err)
 
     def shutdown(self, cancel: bool = False) -> None:

@@ -333,8 +333,16 @@ def run_experiments(
     if not cfgs:
         return []
     spec = cfgs[0].backend
-    shared = None if shared_inputs is None else Path(shared_inputs).resolve()
-    runs = [_open_run(cfg, out_root, only, progress, shared) for cfg in cfgs]
+    if backend is None:  # first: a missing extra or cluster fails before any work
+        backend = make_backend(spec.kind, jobs=jobs if jobs is not None else spec.jobs,
+                               address=spec.address, cpus_per_unit=spec.cpus_per_unit,
+                               gpus_per_unit=spec.gpus_per_unit)
+    try:
+        shared = None if shared_inputs is None else Path(shared_inputs).resolve()
+        runs = [_open_run(cfg, out_root, only, progress, shared) for cfg in cfgs]
+    except BaseException:
+        backend.shutdown(cancel=True)
+        raise
     retries_allowed = spec.max_retries if max_retries is None else max_retries
     total = sum(len(r.units) for r in runs)
     for run in runs:
@@ -345,10 +353,6 @@ def run_experiments(
                 _emit(on_event, UnitEvent(u, "skipped", r.get("episodes", 0),
                                           r.get("episodes", 0), _n_done(runs), total,
                                           run=run.cfg.name))
-    if backend is None:
-        backend = make_backend(spec.kind, jobs=jobs if jobs is not None else spec.jobs,
-                               address=spec.address, cpus_per_unit=spec.cpus_per_unit,
-                               gpus_per_unit=spec.gpus_per_unit)
     running: dict[Future, tuple[_Run, Unit]] = {}
     try:
         for run in runs:
