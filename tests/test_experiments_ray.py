@@ -107,7 +107,7 @@ def test_killed_ray_worker_is_retried_and_a_failing_unit_is_reported(tmp_path, r
 mode = "train"
 tasks = "A_meta"
 algo = "a3c"
-episodes = 150
+episodes = 300
 workers = 0
 checkpoint_every = 10
 
@@ -148,11 +148,11 @@ bogus = 1
     trace = (unit.parent.parent / "bad" / "seed-0" / "error.txt").read_text()
     assert "Traceback" in trace and "unknown a3c option(s) ['bogus']" in trace
     episodes = [int(r["episode"]) for r in _metrics(unit / "metrics.csv")]
-    assert episodes == list(range(1, 151))  # nothing lost, nothing twice
+    assert episodes == list(range(1, 301))  # nothing lost, nothing twice
     resumed = json.loads((unit / "config.json").read_text())
     assert resumed["resume"] and resumed["start_episode"] >= 30
     result = json.loads((unit / "result.json").read_text())
-    assert result["episodes"] == 150 and result["worker"]["pid"] != killed[0]
+    assert result["episodes"] == 300 and result["worker"]["pid"] != killed[0]
 
 
 def test_killed_driver_leaves_nothing_running_on_the_cluster(tmp_path, ray_cluster):
