@@ -261,7 +261,7 @@ def test_sweep_runs_a_grid_through_one_backend_with_one_table(tmp_path):
     cfg = _config(tmp_path, [dict(name="pre", episodes=30)], compare=["pre"])
     record = run_sweep(cfg, ["stages.pre.lr=1e-3,1e-2", "stages.pre.max_grad_norm=20.0"],
                        tmp_path / "runs", overrides={"seeds": [0, 1]},
-                       backend=LocalBackend(2))
+                       backend=LocalBackend(0))
     folder = tmp_path / "runs" / "faults-sweep"
     assert record["folder"] == str(folder)
     assert [(r["stages.pre.lr"], r["method"], r["n"]) for r in record["rows"]] == \

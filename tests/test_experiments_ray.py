@@ -156,8 +156,9 @@ bogus = 1
 
 
 def test_killed_driver_leaves_nothing_running_on_the_cluster(tmp_path, ray_cluster):
-    text = (REPO / "configs" / "tiny.toml").read_text().replace("episodes = 60",
-                                                                 "episodes = 50000")
+    # long units, each with an A3C worker process of its own
+    text = (REPO / "configs" / "tiny.toml").read_text().replace(
+        "episodes = 60", "episodes = 50000").replace("workers = 0", "workers = 1")
     (tmp_path / "long.toml").write_text(text)
     env = {**os.environ, **RAY_ENV}
     log = (tmp_path / "driver.log").open("w")
@@ -175,12 +176,14 @@ def test_killed_driver_leaves_nothing_running_on_the_cluster(tmp_path, ray_clust
                     pids[stage] = int(lock["pid"])
             time.sleep(0.2)
         assert len(pids) == 2, (tmp_path / "driver.log").read_text()[-3000:]
+        procs = sorted({p for pid in pids.values() for p in _tree(pid)})
+        assert len(procs) >= 4, procs  # two Ray workers and their A3C workers
         os.kill(driver.pid, signal.SIGKILL)
         driver.wait()
         deadline = time.time() + 30
-        while time.time() < deadline and any(_alive(p) for p in pids.values()):
+        while time.time() < deadline and any(_alive(p) for p in procs):
             time.sleep(0.2)
-        assert not [p for p in pids.values() if _alive(p)], "units outlived their driver"
+        assert not [p for p in procs if _alive(p)], "units outlived their driver"
         for stage in pids:  # the units' folders are free for a rerun
             with unit_lock(units / stage / "seed-0"):
                 pass
@@ -196,3 +199,16 @@ def _alive(pid: int) -> bool:
     except FileNotFoundError:
         return False
     return stat.rsplit(")", 1)[1].split()[0] != "Z"
+
+
+def _tree(pid: int) -> list[int]:
+    out, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        out.append(p)
+        for task in Path(f"/proc/{p}/task").glob("*"):
+            try:
+                todo += [int(c) for c in (task / "children").read_text().split()]
+            except (FileNotFoundError, ProcessLookupError):
+                continue
+    return out
