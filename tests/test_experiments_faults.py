@@ -258,31 +258,44 @@ def test_unit_that_raises_is_reported_with_its_traceback_and_the_rest_goes_on(tm
 
 
 def test_sweep_runs_a_grid_through_one_backend_with_one_table(tmp_path):
-    cfg = _config(tmp_path, [dict(name="pre", episodes=30)], compare=["pre"])
-    record = run_sweep(cfg, ["stages.pre.lr=1e-3,1e-2", "stages.pre.max_grad_norm=20.0"],
+    cfg = _config(tmp_path, [dict(name="pre", episodes=20),
+                             dict(name="tune", episodes=30, extra='init = "pre"')],
+                  compare=["tune"])
+    record = run_sweep(cfg, ["stages.tune.lr=1e-3,1e-2", "stages.tune.max_grad_norm=20.0"],
                        tmp_path / "runs", overrides={"seeds": [0, 1]},
                        backend=LocalBackend(0))
     folder = tmp_path / "runs" / "faults-sweep"
     assert record["folder"] == str(folder)
-    assert [(r["stages.pre.lr"], r["method"], r["n"]) for r in record["rows"]] == \
-        [(0.001, "pre", 2), (0.01, "pre", 2)]
+    assert [(r["stages.tune.lr"], r["method"], r["n"]) for r in record["rows"]] == \
+        [(0.001, "tune", 2), (0.01, "tune", 2)]
     variants = sorted(p.name for p in folder.iterdir() if p.is_dir() and p.name != "inputs")
-    # the points share one copy of their (identical) scene and task set
+    assert variants == ["lr=0.001,max_grad_norm=20.0", "lr=0.01,max_grad_norm=20.0"]
+    # the points share one copy of their (identical) scene and task set ...
     assert len(list((folder / "inputs" / "scenes").iterdir())) == 1
     assert len(list((folder / "inputs" / "tasks").glob("*.json"))) == 1
     assert not (folder / variants[0] / "scenes").exists()
-    assert variants == ["lr=0.001,max_grad_norm=20.0", "lr=0.01,max_grad_norm=20.0"]
-    for v, lr in zip(variants, (0.001, 0.01), strict=True):
-        for seed in (0, 1):
-            run = json.loads((folder / v / f"units/pre/seed-{seed}/config.json").read_text())
+    # ... and train their identical parent stage once: the second point links to the first's
+    for seed in (0, 1):
+        first, second = (folder / v / f"units/pre/seed-{seed}" for v in variants)
+        assert not first.is_symlink() and second.is_symlink()
+        assert second.resolve() == first.resolve()
+        for v, lr in zip(variants, (0.001, 0.01), strict=True):
+            run = json.loads((folder / v / f"units/tune/seed-{seed}/config.json").read_text())
             a3c = run["a3c"]
             assert (a3c["lr"], a3c["max_grad_norm"], a3c["seed"]) == (lr, 20.0, seed)
-    curves = [_episodes(folder / v / "units/pre/seed-0/metrics.csv") for v in variants]
-    assert curves[0] == curves[1] == list(range(1, 31))
+            assert _episodes(folder / v / f"units/tune/seed-{seed}/metrics.csv") == \
+                list(range(1, 31))
     table = (folder / "sweep.md").read_text()
-    assert "| stages.pre.lr | stages.pre.max_grad_norm | comparison | method |" in table
-    assert "| 0.001 | 20.0 | c | pre |" in table and "| 0.01 | 20.0 | c | pre |" in table
+    assert "| stages.tune.lr | stages.tune.max_grad_norm | comparison | method |" in table
+    assert "| 0.001 | 20.0 | c | tune |" in table and "| 0.01 | 20.0 | c | tune |" in table
     assert json.loads((folder / "sweep.json").read_text())["rows"] == record["rows"]
+    # resume: a rerun finds every unit done, shared ones through their links
+    events = []
+    again = run_sweep(cfg, ["stages.tune.lr=1e-3,1e-2", "stages.tune.max_grad_norm=20.0"],
+                      tmp_path / "runs", overrides={"seeds": [0, 1]},
+                      backend=LocalBackend(0), on_event=events.append)
+    assert {e.status for e in events} == {"skipped"} and len(events) == 8
+    assert again["rows"] == record["rows"]
 
 
 def test_sweep_params_and_backend_table():
@@ -330,8 +343,8 @@ def test_cli_backend_options_fail_in_one_line(tmp_path):
     assert r.stderr.strip().splitlines()[-1] == \
         "geonav: error: --address names a Ray cluster: use it with --backend ray"
     # without the extra, --backend ray names it (ray hidden from the import system)
-    r = _cli(tmp_path, "experiment", "sweep", tiny, "--param", "stages.pre.lr=1e-3", "--backend", "ray",
-             pre="sys.modules['ray'] = None")
+    r = _cli(tmp_path, "experiment", "sweep", tiny, "--param", "stages.pre.lr=1e-3",
+             "--backend", "ray", pre="sys.modules['ray'] = None")
     assert r.returncode == 2
     assert "pip install 'geonav[ray]'" in r.stderr.strip().splitlines()[-1]
     assert not (tmp_path / "runs").exists()  # it stopped before making anything

@@ -325,7 +325,9 @@ def run_experiments(
     """Run several experiments (a sweep's variants) through one backend at once.
 
     Units of all the experiments share the backend's slots; each experiment keeps its
-    own folder ``out_root/cfg.name`` and report. Returns the summaries in order. The
+    own folder ``out_root/cfg.name`` and report. A unit that is the very same training
+    in several of them (same stage, task set, options and seed, and same parents) is
+    trained once; the others' unit folders link to it. Returns the summaries in order. The
     backend and the retry budget come from the first config unless given.
     ``shared_inputs``: one folder for the scenes and task sets of all of them (see
     :func:`prepare_inputs`).
@@ -354,11 +356,12 @@ def run_experiments(
                                           r.get("episodes", 0), _n_done(runs), total,
                                           run=run.cfg.name))
     running: dict[Future, tuple[_Run, Unit]] = {}
+    shared = _share(runs)
     try:
         for run in runs:
             backend.attach(run.root)
         while True:
-            _submit_ready(runs, backend, running, on_event, total)
+            _submit_ready(runs, backend, running, on_event, total, shared)
             if not running:
                 break
             finished, _ = wait(list(running), timeout=1.0, return_when=FIRST_COMPLETED)
@@ -396,12 +399,64 @@ def _n_done(runs: list[_Run]) -> int:
     return sum(len(r.done) for r in runs)
 
 
+def _fingerprint(run: _Run, u: Unit) -> str:
+    """What makes a unit's training: its payload but the folders, and its parent's."""
+    stage = run.cfg.stages[u.stage]
+    parent = None if stage.init is None else Unit(stage.init, u.seed)
+    payload = _payload(run.cfg, run.root, u, run.scenes, run.tasks,
+                       {} if parent is None else {parent: {"checkpoint": None}})
+    payload.pop("out_dir")
+    payload["init_checkpoint"] = None if parent is None else _fingerprint(run, parent)
+    blob = json.dumps(payload, sort_keys=True, default=str)
+    return hashlib.sha1(blob.encode()).hexdigest()
+
+
+def _share(runs: list[_Run]) -> dict[tuple[int, Unit], tuple[_Run, Unit]]:
+    """Units of later runs that are the very same training as one of an earlier run
+    (a sweep point that changes only a later stage): (run id, unit) -> its owner."""
+    owners: dict[str, tuple[_Run, Unit]] = {}
+    shared: dict[tuple[int, Unit], tuple[_Run, Unit]] = {}
+    for run in runs:
+        for u in run.units:
+            fp = _fingerprint(run, u)
+            owner = owners.setdefault(fp, (run, u))
+            here = unit_dir(run.root, u)
+            if owner[0] is run or (here.exists() and not here.is_symlink()):
+                continue  # its own folder (e.g. trained before sharing): keep it
+            shared[(id(run), u)] = owner
+    return shared
+
+
+def _adopt(run: _Run, u: Unit, owner: tuple[_Run, Unit]) -> None:
+    """Make ``u``'s folder a link to its owner's (done) folder and take its result."""
+    orun, ou = owner
+    here, there = unit_dir(run.root, u), unit_dir(orun.root, ou)
+    if not here.is_symlink():
+        here.parent.mkdir(parents=True, exist_ok=True)
+        here.symlink_to(os.path.relpath(there, here.parent), target_is_directory=True)
+    run.done[u] = orun.done[ou]
+
+
 def _submit_ready(runs: list[_Run], backend: Backend, running: dict[Future, tuple[_Run, Unit]],
-                  on_event: Callable[[UnitEvent], None] | None, total: int) -> None:
+                  on_event: Callable[[UnitEvent], None] | None, total: int,
+                  shared: dict[tuple[int, Unit], tuple[_Run, Unit]]) -> None:
     busy = {(id(r), u) for r, u in running.values()}
     for run in runs:
         for u in run.units:
             if u in run.done or u in run.failed or (id(run), u) in busy:
+                continue
+            owner = shared.get((id(run), u))
+            if owner is not None:  # trained once, by its owner
+                orun, ou = owner
+                if ou in orun.done:
+                    _adopt(run, u, owner)
+                    _emit(on_event, UnitEvent(u, "done", run.done[u].get("episodes", 0),
+                                              run.cfg.stages[u.stage].episodes,
+                                              _n_done(runs), total,
+                                              f"the same unit as {orun.cfg.name}:{ou.key}",
+                                              run=run.cfg.name))
+                elif ou in orun.failed:
+                    run.failed[u] = f"the same unit as {orun.cfg.name}:{ou.key}, which failed"
                 continue
             if len(running) >= backend.slots:
                 return

@@ -7,7 +7,8 @@ TOML literals, else strings), makes one experiment per point named
 :func:`~geonav.experiments.runner.run_experiments`: the same runner loop,
 backend, locks, retries and resume as a single experiment (no separate
 scheduler). Seeds apply inside every variant (``--seeds``), so each point
-gets its medians over seeds.
+gets its medians over seeds. A unit that is the same training in several
+points (a swept fine-tune's unchanged parent) is trained once and linked.
 
 Folder ``out/NAME-sweep/``: one run folder per point, ``inputs/`` (the
 scenes and task sets, one copy per distinct spec, shared by the points), and
