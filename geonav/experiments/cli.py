@@ -5,6 +5,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from geonav.cliutil import nonneg_int, positive_int
+
+
+def _seeds(text: str) -> tuple[int, ...]:
+    return tuple(nonneg_int(s.strip()) for s in text.split(","))
+
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     exp = sub.add_parser("experiment", help="run transfer experiments from a TOML config")
@@ -15,7 +21,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", default="runs", help="parent folder of the run (default runs/)")
     p.add_argument("--only", action="append", help="run only this part (repeatable)")
     _backend_args(p)
-    p.add_argument("--seeds", help="override the seeds, e.g. 0,1,2")
+    p.add_argument("--seeds", type=_seeds, help="override the seeds, e.g. 0,1,2")
     p.add_argument("--name", help="override the experiment name (run folder)")
     p.add_argument("--fly", choices=["auto", "yes", "no"], default="auto",
                    help="fly the result in the MAVLink emulator when the config has [flight]")
@@ -29,7 +35,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", default="runs", help="parent folder of the sweep (default runs/)")
     p.add_argument("--only", action="append", help="run only this part (repeatable)")
     _backend_args(p)
-    p.add_argument("--seeds", help="override the seeds of every variant, e.g. 0,1,2")
+    p.add_argument("--seeds", type=_seeds, help="override the seeds of every variant, e.g. 0,1,2")
     p.set_defaults(handler=run_sweep)
     p = esub.add_parser("report", help="re-write report.md and plots of a finished run")
     p.add_argument("config", help="experiment TOML")
@@ -39,7 +45,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def _backend_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--jobs", type=int, default=None,
+    p.add_argument("--jobs", type=positive_int, default=None,
                    help="units run in parallel (default: [backend] jobs; local 2, ray: the "
                         "cluster's CPUs)")
     p.add_argument("--backend", choices=["local", "ray"], default=None,
@@ -47,7 +53,7 @@ def _backend_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--address", default=None,
                    help="Ray cluster: auto, ray://HOST:10001 or HOST:6379 (implies --backend "
                         "ray)")
-    p.add_argument("--max-retries", type=int, default=None,
+    p.add_argument("--max-retries", type=nonneg_int, default=None,
                    help="reruns of a unit whose worker died (default: [backend] max_retries, 2)")
 
 
@@ -75,14 +81,14 @@ def _with_backend(cfg, args: argparse.Namespace):
 def _overrides(args: argparse.Namespace) -> dict:
     o: dict = {}
     if getattr(args, "seeds", None):
-        o["seeds"] = [int(s) for s in args.seeds.split(",")]
+        o["seeds"] = list(args.seeds)
     if getattr(args, "name", None):
         o["name"] = args.name
     return o
 
 
 def run(args: argparse.Namespace) -> int:
-    from geonav.cli import progress_bar
+    from geonav.cliutil import progress_bar
     from geonav.experiments.config import load_config
     from geonav.experiments.runner import run_experiment
 
@@ -110,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def run_sweep(args: argparse.Namespace) -> int:
-    from geonav.cli import progress_bar
+    from geonav.cliutil import progress_bar
     from geonav.experiments.sweep import run_sweep as sweep
 
     on_event, overall = _bars("sweep")

@@ -34,6 +34,9 @@ class Callback:
         """One finished episode (see ``METRIC_FIELDS``)."""
         return None
 
+    def on_eval(self, row: dict[str, Any]) -> None:
+        """A periodic greedy + sampled evaluation (``geonav.policy.evaluation.EVAL_FIELDS``)."""
+
     def on_checkpoint(self, path: Path, episodes: int) -> None:
         """A checkpoint was written."""
 
