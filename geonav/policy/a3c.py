@@ -561,8 +561,10 @@ class A3CTrainer:
                     w.writeheader()
                 w.writerow(row)
         result.evals.append(row)
-        for cb in cbs:
-            cb.on_eval(row)
+        for cb in cbs:  # duck-typed callbacks may lack the hook
+            hook = getattr(cb, "on_eval", None)
+            if hook is not None:
+                hook(row)
         return row
 
     def total_env_steps(self, result: TrainResult) -> int:

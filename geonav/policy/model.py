@@ -4,7 +4,8 @@ Current view and target view -> encoder -> linear to ``embed_dim`` each (ReLU);
 previous action probabilities -> linear to ``action_embed_dim`` (ReLU);
 concatenate -> fully connected (ReLU) -> LSTMCell -> actor (``n_actions``) and
 critic (1) heads (the initialisation and input scaling are ``NetConfig.init``,
-``input_norm`` and ``actor_init_std``; see issue 10 in docs/learning.md). With ``NetConfig.prev_view_input`` an extra slot E(o^prev)
+``input_norm`` and ``actor_init_std``; why, in docs/learning.md). With
+``NetConfig.prev_view_input`` an extra slot E(o^prev)
 (ALGORITHMS.md (e), option B) adds the encoder features of the view at the same cell
 at the previous curriculum altitude, linear to ``embed_dim`` (ReLU), concatenated after
 the target embedding; ``forward``'s ``prev`` argument feeds it, and None zero-fills the
