@@ -28,7 +28,7 @@ seeds = [0]
 eval_starts = 4
 
 [convergence]
-window = 10
+window = 20
 threshold = 0.9
 hold = 0.8
 
