@@ -77,12 +77,16 @@ def _load(path: Path):
 
 
 def _alive(pid: int) -> bool:
-    """True while ``pid`` exists and is not a zombie."""
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except FileNotFoundError:
-        return False
-    return stat.rsplit(")", 1)[1].split()[0] != "Z"
+    """True while any thread of ``pid`` runs (its files, locks included, are released
+    only when the last thread has exited, which can be after the leader is a zombie)."""
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        try:
+            state = (task / "stat").read_text().rsplit(")", 1)[1].split()[0]
+        except (FileNotFoundError, ProcessLookupError, IndexError):
+            continue
+        if state not in ("Z", "X"):
+            return True
+    return False
 
 
 def _tree(pid: int) -> list[int]:
@@ -121,7 +125,8 @@ def test_unit_lock_refuses_a_live_holder_and_takes_over_a_dead_ones(tmp_path, ca
     try:
         assert holder.stdout.readline().strip() == "held"
         assert read_lock(unit)["pid"] == holder.pid
-        with pytest.raises(UnitLocked, match=f'"pid": {holder.pid}'), unit_lock(unit):
+        with pytest.raises(UnitLocked, match=f'"pid": {holder.pid}'), \
+                unit_lock(unit, wait_s=0.3):
             pass
         # SIGKILL: no cleanup runs, the record stays, the kernel drops the flock
         holder.kill()
@@ -136,8 +141,20 @@ def test_unit_lock_refuses_a_live_holder_and_takes_over_a_dead_ones(tmp_path, ca
     assert (unit / ".lock").read_text() == ""  # a clean release leaves nothing stale
     # a lock is per holder: a second holder in the same process is refused too
     with unit_lock(unit), pytest.raises(UnitLocked, match=socket.gethostname()), \
-            unit_lock(unit):
+            unit_lock(unit, wait_s=0):
         pass
+    # a holder that is on its way out is waited for
+    quitting = subprocess.Popen(
+        [sys.executable, "-c", "import time; from pathlib import Path; "
+         "from geonav.experiments.runner import unit_lock\n"
+         f"with unit_lock(Path({str(unit)!r})):\n    print('held', flush=True); time.sleep(1)\n"
+         "print('released', flush=True)"],
+        stdout=subprocess.PIPE, text=True)
+    assert quitting.stdout.readline().strip() == "held"
+    with unit_lock(unit, wait_s=30):  # refused at first, then taken
+        assert read_lock(unit)["pid"] == os.getpid()
+    assert quitting.stdout.readline().strip() == "released"
+    quitting.wait()
 
 
 def test_sigkilled_runner_leaves_no_worker_alive(tmp_path):

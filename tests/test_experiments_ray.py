@@ -195,11 +195,16 @@ def test_killed_driver_leaves_nothing_running_on_the_cluster(tmp_path, ray_clust
 
 
 def _alive(pid: int) -> bool:
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except FileNotFoundError:
-        return False
-    return stat.rsplit(")", 1)[1].split()[0] != "Z"
+    """True while any thread of ``pid`` runs (its files, locks included, are released
+    only when the last thread has exited, which can be after the leader is a zombie)."""
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        try:
+            state = (task / "stat").read_text().rsplit(")", 1)[1].split()[0]
+        except (FileNotFoundError, ProcessLookupError, IndexError):
+            continue
+        if state not in ("Z", "X"):
+            return True
+    return False
 
 
 def _tree(pid: int) -> list[int]:

@@ -184,14 +184,23 @@ def _write_json(path: Path, data: dict[str, Any]) -> None:
     os.replace(tmp, path)
 
 
+LOCK_WAIT_S = 5.0
+"""How long a unit waits for its folder's lock (a killed holder takes a moment to exit)."""
+
+
 @contextmanager
-def unit_lock(out: Path) -> Iterator[None]:
+def unit_lock(out: Path, wait_s: float = LOCK_WAIT_S) -> Iterator[None]:
     """Hold the unit folder ``out`` exclusively while a unit trains in it.
 
     An ``flock`` on ``out/.lock``: the kernel drops it when the holder exits in any way,
     so a killed holder never blocks a rerun; the file names the holder (pid, host) while
     it runs and is emptied on a clean release, so a non-empty file found on acquiring
     is the stale record of a holder that was killed, and is logged as such.
+
+    Args:
+        out: the unit folder.
+        wait_s: keep trying this long before giving up (a holder that was just killed
+            releases the lock only once all its threads have exited).
 
     Raises:
         UnitLocked: another live process (this or another machine of a shared folder)
@@ -200,13 +209,20 @@ def unit_lock(out: Path) -> Iterator[None]:
     out.mkdir(parents=True, exist_ok=True)
     fd = os.open(out / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
     try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError as err:
-            holder = os.pread(fd, 4096, 0).decode(errors="replace").strip() or "another process"
-            raise UnitLocked(f"unit folder {out} is in use by {holder}: another run of this "
-                             "experiment is training it; wait for it to finish or stop it "
-                             "first") from err
+        deadline = time.monotonic() + wait_s
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError as err:
+                if time.monotonic() < deadline:
+                    time.sleep(0.1)
+                    continue
+                holder = os.pread(fd, 4096, 0).decode(errors="replace").strip() or \
+                    "another process"
+                raise UnitLocked(f"unit folder {out} is in use by {holder}: another run of this "
+                                 "experiment is training it; wait for it to finish or stop "
+                                 "it first") from err
         try:
             stale = os.pread(fd, 4096, 0).decode(errors="replace").strip()
             if stale:
