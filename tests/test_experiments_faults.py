@@ -227,12 +227,14 @@ def test_dead_worker_is_retried_from_its_checkpoint_without_lost_or_duplicate_ro
     watcher.start()
     try:
         summary = run_experiment(cfg, tmp_path / "runs", backend=LocalBackend(1),
-                                 max_retries=1, report=False)
+                                 max_retries=1)
     finally:
         stop.set()
         watcher.join()
     assert killed, "the unit finished before it could be killed"
     assert summary["failed"] == {} and summary["retries"] == {"pre/seed-0": 1}
+    written = json.loads((unit.parent.parent.parent / "summary.json").read_text())
+    assert written["retries"] == {"pre/seed-0": 1} and written["name"] == "faults"
     assert json.loads((unit / "retries.json").read_text())["worker_lost"] == 1
     resumed = json.loads((unit / "config.json").read_text())
     assert resumed["resume"] and resumed["start_episode"] >= 30

@@ -426,9 +426,9 @@ def run_experiments(
             summary = write_report(run.cfg, run.root, run.stage_keys, run.scenes, run.tasks,
                                    run.failed)
         summary["retries"] = {u.key: n for u, n in run.retries.items()}
-        if report and run.retries:
-            _write_json(run.root / "summary.json",
-                        json.loads(json.dumps(summary, default=str)))
+        written = _read_json(run.root / "summary.json") if report else None
+        if written is not None:
+            _write_json(run.root / "summary.json", {**written, "retries": summary["retries"]})
         summaries.append(summary)
     return summaries
 
