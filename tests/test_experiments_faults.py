@@ -337,6 +337,10 @@ def test_sweep_params_and_backend_table():
         parse_config({**base, "backend": {"kind": "slurm"}})
     with pytest.raises(ConfigError, match=r"\[backend\]: unknown key"):
         parse_config({**base, "backend": {"nodes": 3}})
+    with pytest.raises(ConfigError, match=r"\[backend\] max_retries = 'two': expected int"):
+        parse_config({**base, "backend": {"max_retries": "two"}})
+    with pytest.raises(ConfigError, match="gpus_per_unit needs kind"):
+        parse_config({**base, "backend": {"gpus_per_unit": 1}})
 
 
 def test_sweep_key_must_name_a_table(tmp_path):

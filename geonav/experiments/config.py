@@ -313,6 +313,13 @@ def _backend(d: Any) -> BackendSpec:
     unknown = sorted(set(d) - known)
     if unknown:
         raise ConfigError(f"[backend]: unknown key(s) {unknown}; known: {sorted(known)}")
+    types: dict[str, tuple[type, ...]] = {
+        "kind": (str,), "jobs": (int,), "address": (str,), "max_retries": (int,),
+        "cpus_per_unit": (int, float), "gpus_per_unit": (int, float)}
+    for key, value in d.items():
+        if isinstance(value, bool) or not isinstance(value, types[key]):
+            raise ConfigError(f"[backend] {key} = {value!r}: expected "
+                              f"{' or '.join(t.__name__ for t in types[key])}")
     spec = BackendSpec(**d)
     if spec.kind not in BACKENDS:
         raise ConfigError(f"[backend] kind = {spec.kind!r}: use one of {BACKENDS}")
