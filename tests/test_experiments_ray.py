@@ -88,6 +88,18 @@ def test_ray_runs_tiny_to_the_local_backends_results(tmp_path, ray_cluster):
     assert again["failed"] == {} and {e.status for e in events} == {"skipped"}
 
 
+def test_unreachable_address_is_one_line(tmp_path):
+    # no cluster needed: nothing listens on port 1 of the loopback address
+    r = subprocess.run([sys.executable, "-m", "geonav.cli", "experiment", "run",
+                        str(REPO / "configs" / "tiny.toml"), "--address", "127.0.0.1:1"],
+                       cwd=tmp_path, capture_output=True, text=True, timeout=120,
+                       env={**os.environ, **RAY_ENV})
+    assert r.returncode == 2
+    assert r.stderr.strip().splitlines()[-1].startswith(
+        "geonav: error: no Ray cluster answers at 127.0.0.1:1:")
+    assert not (tmp_path / "runs").exists()
+
+
 def test_run_folder_must_be_shared_with_every_node(tmp_path, ray_cluster):
     from geonav.experiments.backend import _probe_folder
 

@@ -220,6 +220,21 @@ def _import_ray() -> Any:
     return ray
 
 
+def _check_reachable(address: str | None, timeout_s: float = 10.0) -> None:
+    """Fail fast on a ``HOST:PORT`` address nothing listens at (Ray itself retries for
+    minutes)."""
+    if not address or address == "auto" or "://" in address:
+        return
+    host, _, port = address.rpartition(":")
+    if not host or not port.isdigit():
+        raise BackendError(f"Ray address {address!r}: use auto, ray://HOST:10001 or HOST:PORT")
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout_s).close()
+    except OSError as err:
+        raise BackendError(f"no Ray cluster answers at {address}: {err}; start one with "
+                           "`ray start --head` (or `ray up`), or pass its address") from err
+
+
 def _probe_folder(path: str, token: str) -> dict[str, Any]:
     """Runs on a Ray node: does it see ``path`` with the driver's token inside?"""
     p = Path(path)
@@ -252,6 +267,7 @@ class RayBackend:
         self._ray = ray
         self._owns = False
         if not ray.is_initialized():
+            _check_reachable(address)
             try:
                 ray.init(address=address, include_dashboard=False, log_to_driver=False)
             except (ConnectionError, RuntimeError, ValueError) as err:
