@@ -31,9 +31,11 @@ REPO = Path(__file__).resolve().parent.parent
 TIMING = {"wall_s", "elapsed_s"}
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def ray_cluster():
-    """One local Ray cluster for the whole session; yields its GCS address."""
+    """One local Ray cluster for the session's Ray tests (only this module uses one), shut
+    down after them so that it does not idle through the rest of the suite; yields its GCS
+    address."""
     ray.init(num_cpus=2, include_dashboard=False, _node_ip_address="127.0.0.1",
              log_to_driver=False)
     address = ray.get_runtime_context().gcs_address
