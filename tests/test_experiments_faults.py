@@ -371,3 +371,25 @@ def test_cli_backend_options_fail_in_one_line(tmp_path):
     assert r.returncode == 2
     assert "pip install 'geonav[ray]'" in r.stderr.strip().splitlines()[-1]
     assert not (tmp_path / "runs").exists()  # it stopped before making anything
+
+
+def _fork_and_terminate_a_child() -> dict:
+    pid = os.fork()
+    if pid == 0:  # like an A3C worker: forked from the unit's process, stopped by SIGTERM
+        time.sleep(30)
+        os._exit(0)
+    time.sleep(0.2)
+    os.kill(pid, signal.SIGTERM)
+    _, status = os.waitpid(pid, 0)
+    return {"signal": os.WTERMSIG(status) if os.WIFSIGNALED(status) else None,
+            "pid": os.getpid(), "pgid": os.getpgrp()}
+
+
+def test_local_worker_survives_the_sigterm_of_a_child_it_forked():
+    backend = LocalBackend(1)
+    try:
+        r = backend.submit(_fork_and_terminate_a_child).result(timeout=120)
+    finally:
+        backend.shutdown()
+    assert r["pgid"] == r["pid"]  # the worker leads its own process group
+    assert r["signal"] == signal.SIGTERM  # the child alone ended, as by default

@@ -95,6 +95,15 @@ def _kill_own_group(*_: Any) -> None:
     os.killpg(os.getpgrp(), signal.SIGKILL)
 
 
+def _on_sigterm(signum: int, frame: Any) -> None:
+    if os.getpid() == os.getpgrp():
+        _kill_own_group()
+    # a process forked from the worker (an A3C worker) inherited this handler: a SIGTERM
+    # meant for it alone (its trainer stopping it) ends it alone, as by default
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    os.kill(os.getpid(), signal.SIGTERM)
+
+
 def _watch_parent(parent_pid: int) -> None:
     while True:
         if os.getppid() != parent_pid:
@@ -105,7 +114,7 @@ def _watch_parent(parent_pid: int) -> None:
 def _worker_init(parent_pid: int) -> None:
     """Initializer of a local worker: own process group, exit when the runner dies."""
     os.setpgrp()
-    signal.signal(signal.SIGTERM, _kill_own_group)
+    signal.signal(signal.SIGTERM, _on_sigterm)
     _set_parent_death_signal(signal.SIGTERM)
     if os.getppid() != parent_pid:  # the runner died before prctl took effect
         _kill_own_group()
