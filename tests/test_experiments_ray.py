@@ -36,7 +36,8 @@ def ray_cluster():
     """One local Ray cluster for the session's Ray tests (only this module uses one), shut
     down after them so that it does not idle through the rest of the suite; yields its GCS
     address."""
-    ray.init(num_cpus=2, include_dashboard=False, _node_ip_address="127.0.0.1",
+    # one declared GPU: Ray only counts it (nothing here runs on it)
+    ray.init(num_cpus=2, num_gpus=1, include_dashboard=False, _node_ip_address="127.0.0.1",
              log_to_driver=False)
     address = ray.get_runtime_context().gcs_address
     assert address.startswith("127.0.0.1:"), address
@@ -100,6 +101,13 @@ def test_unreachable_address_is_one_line(tmp_path):
     assert r.stderr.strip().splitlines()[-1].startswith(
         "geonav: error: no Ray cluster answers at 127.0.0.1:1:")
     assert not (tmp_path / "runs").exists()
+
+
+def test_units_reserve_the_gpus_asked_for(ray_cluster):
+    backend = RayBackend(gpus_per_unit=1)
+    assert backend.slots == 1  # 2 CPUs but 1 GPU
+    assert backend.submit(os.getenv, "CUDA_VISIBLE_DEVICES").result(timeout=120) == "0"
+    assert RayBackend(gpus_per_unit=0.5).slots == 2
 
 
 def test_run_folder_must_be_shared_with_every_node(tmp_path, ray_cluster):

@@ -264,7 +264,8 @@ class RayBackend:
             start a local one).
         cpus_per_unit: CPUs a unit reserves; None: ``max(1, stage workers)``.
         gpus_per_unit: GPUs a unit reserves (fractions allowed).
-        max_units: cap on concurrent units; None: the cluster's CPUs / CPUs per unit.
+        max_units: cap on concurrent units; None: as many as the cluster's CPUs (and GPUs,
+            with ``gpus_per_unit``) hold at start.
         runtime_env: passed to the tasks (``env_vars``, ``pip``, ...).
         check_shared: probe from every node that the run folder is shared.
     """
@@ -288,9 +289,11 @@ class RayBackend:
         self.gpus_per_unit = float(gpus_per_unit)
         self.runtime_env = runtime_env
         self.check_shared = check_shared
-        cpus = float(ray.cluster_resources().get("CPU", 1.0))
-        per = float(cpus_per_unit or 1.0)
-        self.slots = max(1, int(cpus // per)) if max_units is None else max(1, int(max_units))
+        have = ray.cluster_resources()
+        fit = int(float(have.get("CPU", 1.0)) // float(cpus_per_unit or 1.0))
+        if self.gpus_per_unit > 0:
+            fit = min(fit, int(float(have.get("GPU", 0.0)) // self.gpus_per_unit))
+        self.slots = max(1, fit) if max_units is None else max(1, int(max_units))
         self._refs: dict[Any, Future] = {}
         self._remotes: dict[Callable[..., Any], Any] = {}
         self._lock = threading.Lock()
