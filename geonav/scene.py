@@ -18,6 +18,9 @@ import math
 import os
 import shutil
 import tempfile
+import uuid
+import weakref
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -204,6 +207,44 @@ class Scene:
                           list(self.transform)[:6], self.origin.lon_deg, self.origin.lat_deg])
         return hashlib.sha256(key.encode()).hexdigest()[:16]
 
+    # -- copies and pickles -----------------------------------------------------------
+    def is_mapped(self) -> bool:
+        """True when the rasters are still the package's read-only memory maps from :meth:`open`.
+
+        Such a scene pickles as its package path (a few hundred bytes): the receiving
+        process maps the same decoded rasters (:func:`open_shared`) instead of getting a
+        copy of them.
+        """
+        mapped = self.__dict__.get("_mapped")
+        if mapped is None or self.path is None:
+            return False
+        now = (self.rgb, self.mask, self.dsm)
+        return all(a is b for a, b in zip(now, mapped, strict=True))
+
+    def __getstate__(self) -> dict[str, Any]:
+        # caches (render maps, renderers) are rebuilt where the scene lands
+        return {k: v for k, v in self.__dict__.items() if not k.startswith("_")}
+
+    def __reduce_ex__(self, protocol: Any) -> Any:
+        if self.is_mapped():
+            return (open_shared, (str(self.path),))
+        return super().__reduce_ex__(protocol)
+
+    def __copy__(self) -> Scene:
+        new = object.__new__(type(self))
+        new.__dict__.update({k: v for k, v in self.__dict__.items() if not k.startswith("_")
+                             or k == "_mapped"})
+        return new
+
+    def __deepcopy__(self, memo: dict[int, Any]) -> Scene:
+        import copy
+
+        new = object.__new__(type(self))
+        memo[id(self)] = new
+        new.__dict__.update(copy.deepcopy({k: v for k, v in self.__dict__.items()
+                                           if not k.startswith("_")}, memo))
+        return new
+
     # -- disk -------------------------------------------------------------------------
     def save(self, out_dir: str | os.PathLike[str], *, overwrite: bool = False,
              compress: str = "JPEG") -> Path:
@@ -253,6 +294,7 @@ class Scene:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
         self.manifest, self.path = manifest, out
+        self.__dict__.pop("_mapped", None)  # the arrays are not the new package's decoding
         log.info("wrote scene %s to %s (%dx%d px at %.3f m)", self.name, out, self.width,
                  self.height, self.gsd_m)
         return out
@@ -336,8 +378,7 @@ class Scene:
                 if problems:
                     raise SceneError(f"scene package {folder} is inconsistent: "
                                      + "; ".join(problems))
-                rgb = np.ascontiguousarray(np.moveaxis(src.read(), 0, 2))
-                mask = src.dataset_mask() > 0
+                rgb, mask = mapped_ortho(ortho_path, src)
                 ortho_crs = src.crs
             dsm = None
             if manifest.get("dsm"):
@@ -363,7 +404,7 @@ class Scene:
                             "re-ingest the scene with --dsm")
                     if src.count != 1:
                         raise SceneError(f"{dsm_path.name} must have one band, has {src.count}")
-                    dsm = src.read(1).astype(np.float32)
+                    dsm = mapped_dsm(dsm_path, src)
         except RasterioError as err:
             raise SceneError(f"cannot read the rasters of {folder}: {err}") from err
         _check_origin(folder, manifest, origin)
@@ -377,6 +418,7 @@ class Scene:
             raise SceneError(f"scene {folder}: {manifest['dsm']['file']} holds infinite heights")
         scene = cls(manifest["name"], rgb, mask, float(manifest["gsd_m"]), transform, origin,
                     dsm, manifest, folder)
+        scene.__dict__["_mapped"] = (rgb, mask, dsm)
         return scene
 
 
@@ -479,3 +521,119 @@ def read_manifest(folder: Path) -> dict[str, Any]:
     if problems:
         raise SceneError(f"{path} is invalid: " + "; ".join(problems))
     return manifest
+
+
+# -- memory-mapped rasters (the loading side of Scene.open) --------------------------------
+CACHE_ENV = "GEONAV_CACHE_DIR"
+"""Environment variable: the folder for decoded rasters of every package (default: a
+``.geonav-cache`` folder inside each package, or ``$XDG_CACHE_HOME/geonav`` when the
+package is read-only). ``GEONAV_RASTER_CACHE=0`` turns the cache off: rasters are then
+decoded into each process's memory, as before (more memory per worker, no disk used)."""
+PACKAGE_CACHE = ".geonav-cache"
+
+
+def raster_cache_dir(folder: Path) -> Path:
+    """The folder that holds a package's decoded rasters (created if needed)."""
+    override = os.environ.get(CACHE_ENV)
+    if not override:
+        local = folder / PACKAGE_CACHE
+        try:
+            local.mkdir(exist_ok=True)
+            if os.access(local, os.W_OK):
+                return local
+        except OSError:
+            pass
+        base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "geonav"
+    else:
+        base = Path(override)
+    sub = base / "scenes" / hashlib.sha256(str(folder.resolve()).encode()).hexdigest()[:16]
+    sub.mkdir(parents=True, exist_ok=True)
+    return sub
+
+
+def file_key(path: Path) -> str:
+    """A short key that changes whenever the file at ``path`` is replaced or rewritten."""
+    st = path.stat()
+    return hashlib.sha256(f"{path.resolve()}|{st.st_size}|{st.st_mtime_ns}".encode()
+                          ).hexdigest()[:16]
+
+
+def cached_array(path: Path, build: Callable[[], np.ndarray]) -> np.ndarray:
+    """A read-only memory map of the ``.npy`` file at ``path``, written first from ``build()``.
+
+    The file is written to a temporary name and renamed, so processes that race on it
+    all map a whole file; older files of the same name stem with another key (the last
+    ``-`` part) are removed. When the folder cannot be written, the built array is
+    returned (read-only, in memory) and a warning logged.
+
+    Memory-mapped pages belong to the page cache: every process that maps the same
+    file shares them, which is what keeps vector-env workers light.
+    """
+    if os.environ.get("GEONAV_RASTER_CACHE") == "0":
+        arr = np.ascontiguousarray(build())
+        arr.flags.writeable = False
+        return arr
+    if path.is_file():
+        try:
+            return np.asarray(np.load(path, mmap_mode="r"))
+        except (OSError, ValueError) as err:  # truncated by a crash before the rename
+            log.warning("rebuilding the unreadable raster cache %s (%s)", path, err)
+    arr = np.ascontiguousarray(build())
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
+    try:
+        with open(tmp, "wb") as f:
+            np.save(f, arr)
+        os.replace(tmp, path)
+    except OSError as err:
+        tmp.unlink(missing_ok=True)
+        log.warning("cannot write the raster cache %s (%s); keeping it in memory", path, err)
+        arr.flags.writeable = False
+        return arr
+    stem = path.name.rsplit("-", 1)[0]
+    for old in path.parent.glob(f"{stem}-*.npy"):
+        if old != path and old.name.rsplit("-", 1)[0] == stem:
+            old.unlink(missing_ok=True)
+    return np.asarray(np.load(path, mmap_mode="r"))
+
+
+def mapped_ortho(path: Path, src: Any) -> tuple[np.ndarray, np.ndarray]:
+    """The ortho's (H, W, 3) uint8 pixels and (H, W) bool mask as read-only memory maps.
+
+    Decoded from the open dataset ``src`` on first use into the package's raster cache
+    (:func:`raster_cache_dir`); later opens, in any process, only map the files.
+    """
+    cache, key = raster_cache_dir(path.parent), file_key(path)
+    rgb = cached_array(cache / f"{path.stem}.rgb-{key}.npy",
+                       lambda: np.moveaxis(src.read(), 0, 2))
+    mask = cached_array(cache / f"{path.stem}.mask-{key}.npy", lambda: src.dataset_mask() > 0)
+    return rgb, mask
+
+
+def mapped_dsm(path: Path, src: Any) -> np.ndarray:
+    """The DSM's (H, W) float32 metres as a read-only memory map (see :func:`mapped_ortho`)."""
+    cache, key = raster_cache_dir(path.parent), file_key(path)
+    return cached_array(cache / f"{path.stem}.dsm-{key}.npy",
+                        lambda: src.read(1).astype(np.float32))
+
+
+_SHARED: weakref.WeakValueDictionary[tuple[str, int], Scene] = weakref.WeakValueDictionary()
+
+
+def open_shared(path: str | os.PathLike[str]) -> Scene:
+    """The process's :class:`Scene` of a package: opened once, shared while anyone holds it.
+
+    Envs of one process that name the same package (or are unpickled from one) share
+    one scene object, hence one set of render maps (:class:`geonav.camera.SliceRenderer`).
+    The scene is re-opened when its ``scene.json`` has changed since.
+    """
+    folder = Path(path)
+    try:
+        stamp = (folder / MANIFEST).stat().st_mtime_ns
+    except OSError:
+        stamp = -1
+    key = (str(folder.resolve()), stamp)
+    scene = _SHARED.get(key)
+    if scene is None:
+        scene = Scene.open(folder)
+        _SHARED[key] = scene
+    return scene

@@ -328,7 +328,9 @@ class A3CTrainer:
             each sets one torch thread before any work), 'spawn' (default elsewhere; each
             worker re-imports torch, several seconds) or 'forkserver'.
         keep_records: keep every episode record in ``TrainResult.records``.
-        tensorboard: also log to ``out_dir/tb`` when the tensorboard extra is installed.
+        tensorboard: a folder for TensorBoard event files under SB3's tag names, x = env
+            steps (``True``: ``out_dir/tb``); None (default) logs none. Needs the
+            ``tensorboard`` extra.
     """
 
     algorithm = "a3c"
@@ -340,7 +342,8 @@ class A3CTrainer:
                  cfg: A3CConfig | None = None, *, out_dir: str | os.PathLike[str] | None = None,
                  resume: str | os.PathLike[str] | None = None,
                  callbacks: Sequence[Callback] = (), mp_context: str | None = None,
-                 keep_records: bool = True, tensorboard: bool = True) -> None:
+                 keep_records: bool = True,
+                 tensorboard: str | os.PathLike[str] | bool | None = None) -> None:
         if mp_context is None:
             mp_context = "fork" if "fork" in torch.multiprocessing.get_all_start_methods() \
                 and sys.platform.startswith("linux") else "spawn"
@@ -446,10 +449,19 @@ class A3CTrainer:
         tmp.write_text(json.dumps(self.resolved_config(), indent=1))
         os.replace(tmp, cfg_path)
         cbs: list[Callback] = [CSVMetrics(self.out_dir / "metrics.csv")]
-        tb = tensorboard_callback(self.out_dir / "tb") if self.tensorboard else None
-        if tb is not None:
-            cbs.append(tb)
         return cbs
+
+    def _tensorboard(self) -> list[Callback]:
+        if self.tensorboard is None or self.tensorboard is False:
+            return []
+        if self.tensorboard is True:
+            if self.out_dir is None:
+                raise ConfigError("tensorboard=True needs a run folder; pass a folder instead")
+            folder: Any = self.out_dir / "tb"
+        else:
+            folder = self.tensorboard
+        tb = tensorboard_callback(folder, required=True)
+        return [tb] if tb is not None else []
 
     def checkpoint_meta(self, episodes: int) -> dict[str, Any]:
         return make_meta(self.net_cfg, self.frozen, self.env, algorithm=self.algorithm,
@@ -465,7 +477,7 @@ class A3CTrainer:
     # -- training ---------------------------------------------------------------------------
     def train(self) -> TrainResult:
         """Run until ``cfg.episodes`` episodes in total; write the final checkpoint."""
-        cbs = self._prepare_out_dir() + self.callbacks
+        cbs = self._prepare_out_dir() + self._tensorboard() + self.callbacks
         t0 = time.perf_counter()
         self._t_start, self._elapsed_base = t0, self._resumed_elapsed()
         result = TrainResult(self.model, self.start_episode, 0, 0.0, self.start_episode,

@@ -124,11 +124,22 @@ def run_preview(args: argparse.Namespace) -> int:
     alts = tuple(args.alts)
     scene = Scene.open(args.scene)
     tasks = None
+    title = None
+    chance = ""
     if args.tasks:
+        from geonav.difficulty import describe, taskset_difficulty
+
         tasks = TaskSet.load(args.tasks)
         tasks.check_scene(scene)
-    out = draw_scene(scene, args.out, tasks=tasks, footprints_at=alts, max_px=args.max_px)
+        diff = tasks.meta.get("difficulty")
+        if not isinstance(diff, dict):
+            diff = taskset_difficulty(tasks, scene)
+        chance = f"; chance: {describe(diff)}"
+        title = (f"{scene.name}: {len(tasks)} tasks; random walk SR "
+                 f"{diff['random_walk_sr']:.2f}, best state-blind {diff['blind_sr']:.2f}")
+    out = draw_scene(scene, args.out, tasks=tasks, footprints_at=alts, max_px=args.max_px,
+                     title=title)
     n = len(tasks) if tasks is not None else 0
     print(f"wrote {Path(out)} (scene {scene.name}, {n} tasks, footprints at "
-          f"{', '.join(f'{a:g}' for a in alts)} m)")
+          f"{', '.join(f'{a:g}' for a in alts)} m{chance})")
     return 0
