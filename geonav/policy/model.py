@@ -127,6 +127,9 @@ class ActorCritic(nn.Module):
                 prev: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, State]:
         """Run T steps.
 
+        Mirrored once, for B slots from a parameter dict: geonav/policy/batched/core.py
+        (change both; tests/test_batched_core.py checks them equal).
+
         Args:
             obs: current views, (T, B, N, N, 3) uint8 or (T, B, F) features.
             target: the target view, (B, N, N, 3) uint8 or (B, F) features (frozen encoder,
