@@ -109,7 +109,6 @@ def _batched_window(model, table, data, n_steps, k_segs, alpha, second_order, re
     """phi -> K segments of N steps with an inner step per segment but the last, per slot;
     returns the window loss summed over slots (graph to phi)."""
     views, targets, actions, rewards, state = data
-    b = views.shape[1]
     params = dict(model.named_parameters())
     adapted = {}
     total = 0.0

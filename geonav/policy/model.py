@@ -127,9 +127,6 @@ class ActorCritic(nn.Module):
                 prev: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, State]:
         """Run T steps.
 
-        Mirrored once, for B slots from a parameter dict: geonav/policy/batched/core.py
-        (change both; tests/test_batched_core.py checks them equal).
-
         Args:
             obs: current views, (T, B, N, N, 3) uint8 or (T, B, F) features.
             target: the target view, (B, N, N, 3) uint8 or (B, F) features (frozen encoder,
@@ -142,6 +139,7 @@ class ActorCritic(nn.Module):
             logits (T, B, n_actions), values (T, B) and the state after step T, whose
             ``p`` is the softmax of the last logits.
         """
+        # Batched mirror: geonav/policy/batched/core.py; change both (test_batched_core.py).
         T, B = obs.shape[0], obs.shape[1]
         obs_f = self.features(obs.reshape(T * B, *obs.shape[2:]))
         tgt_f = self.features(target)
