@@ -345,8 +345,8 @@ class BatchedTrainer(A3CTrainer):
 
 def loss_stats(terms: LossTerms, steps: int) -> dict[str, float]:
     """The loss columns of the metrics rows from an update's terms (per-slot averages)."""
-    return {"policy_loss": float(terms.policy), "value_loss": float(terms.value),
-            "entropy": float(terms.entropy) / max(steps, 1)}
+    return {"policy_loss": float(terms.policy.detach()), "value_loss": float(terms.value.detach()),
+            "entropy": float(terms.entropy.detach()) / max(steps, 1)}
 
 
 class BatchedA3CTrainer(BatchedTrainer):

@@ -1,0 +1,44 @@
+"""Batched ISAR: the reference worker's first adaptive update at B = 1, learning, refusals."""
+
+import pytest
+import torch
+
+from geonav.errors import ConfigError
+from geonav.policy.batched.isar import BatchedISARTrainer
+from geonav.policy.isar import ISARTrainer
+from geonav.policy.meta_config import ISARConfig
+from geonav.policy.testing import tiny_env_factory, tiny_net
+
+
+@pytest.mark.parametrize("second_order", [True, False])
+def test_b1_first_window_equals_reference_worker(second_order):
+    factory = tiny_env_factory(cells=5, max_steps=12)
+    net = tiny_net("random", 32, size=16)
+    cfg = ISARConfig(episodes=1, workers=0, n_steps=2, k_segments=3, alpha=0.5, seed=4,
+                     second_order=second_order)
+    ref = ISARTrainer(factory, net, cfg, tensorboard=False)
+    worker = ref.inline_worker()
+    ref_grads: list = []
+    worker.on_gradients = lambda gs: ref_grads.append([g.clone() for g in gs])
+    worker.events = []
+    rec = worker.run_episode(1)
+    assert rec["length"] > cfg.n_steps * cfg.k_segments  # the first window is complete
+    assert worker.events[:3] == [("inner", 2), ("inner", 4), ("adapt", 6, 3)]
+    bat = BatchedISARTrainer(factory, net, cfg, batch=1, tensorboard=False)
+    bat._setup()
+    got: list = []
+    bat.on_gradients = lambda gs: got.append([g.clone() for g in gs])
+    bat.update()
+    names = [n for n, _ in ref.model.named_parameters()]
+    for n, a, b in zip(names, ref_grads[0], got[0], strict=True):
+        torch.testing.assert_close(b, a, atol=1e-5, rtol=1e-4, msg=n)
+
+
+def test_refuses_what_it_does_not_implement():
+    factory = tiny_env_factory()
+    with pytest.raises(ConfigError, match="frozen encoder"):
+        BatchedISARTrainer(factory, tiny_net("cnn"), ISARConfig(episodes=1), batch=2,
+                           tensorboard=False)
+    with pytest.raises(ConfigError, match="flush_partial_window"):
+        BatchedISARTrainer(factory, tiny_net(), ISARConfig(episodes=1,
+                                                           flush_partial_window=False))
