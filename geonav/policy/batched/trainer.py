@@ -60,7 +60,10 @@ per episode stay comparable to multi-worker A3C."""
 
 def resolve_device(device: str | torch.device | None) -> torch.device:
     """'cpu' or 'cuda[:i]' as a torch device; CUDA is refused when torch sees no GPU."""
-    dev = torch.device(device or "cpu")
+    try:
+        dev = torch.device(device or "cpu")
+    except RuntimeError as err:
+        raise ConfigError(f"device must be 'cpu' or 'cuda', not {device!r}") from err
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise ConfigError("device 'cuda' was asked for, but torch sees no GPU "
                           f"(torch {torch.__version__}, CUDA build "
