@@ -11,8 +11,8 @@ warm-up:
 * ``batched B``: the batched engine with B slots (B = 1, 16, 64, 256);
 * ``ratio``: batched per CPU-second / async per CPU-second.
 
-Rows the batched engine does not implement yet (SAVN, meta-training, packed runs) print
-``n/a``. Last, the memory of the observation tables of the whole-scene 15 m task of a
+Rows the batched engine does not implement yet (SAVN, meta-training; packed runs other
+than A3C) print ``n/a``; ``packed 4x16`` is :class:`~geonav.policy.batched.packed.PackedA3C`. Last, the memory of the observation tables of the whole-scene 15 m task of a
 1.2 km scene (images and frozen features) with B = 256 slots, and the process's peak RSS.
 
 Run: ``.venv/bin/python bench/bench_batched.py [--seconds 4] [--only a3c,isar2]``.
@@ -124,6 +124,23 @@ def run_batched(kind: str, batch: int, seconds: float) -> tuple[float, float] | 
     return clock.rates()
 
 
+def run_packed(kind: str, runs: int, batch: int, seconds: float) -> tuple[float, float] | None:
+    """Steps/s of ``runs`` packed batched-A3C runs of ``batch`` slots each."""
+    from geonav.policy.batched.packed import PackedA3C
+
+    algo, net, cfg, ms = configs(kind)
+    if kind != "a3c":
+        return None
+    packed = PackedA3C(env_factory(ms), net, cfg, seeds=list(range(runs)), batch=batch)
+    for _ in range(3):
+        packed.update()
+    t0, c0, n0 = time.perf_counter(), time.process_time(), packed.env_steps
+    while time.perf_counter() - t0 < seconds:
+        packed.update()
+    steps = packed.env_steps - n0
+    return steps / (time.perf_counter() - t0), steps / (time.process_time() - c0)
+
+
 def table_memory() -> None:
     from geonav.policy.encoders import build_frozen_encoder
     from geonav.tasks import whole_scene_tasks
@@ -169,7 +186,13 @@ def main() -> None:
             else:
                 ratio = r[1] / ac if ac == ac and ac > 0 else float("nan")
                 line += f" | {r[0]:11.0f} {r[1]:8.0f} {ratio:6.1f}"
-        print(line + " | n/a", flush=True)
+        r = run_packed(kind, 4, 16, args.seconds)
+        if r is None:
+            line += " | n/a"
+        else:
+            ratio = r[1] / ac if ac == ac and ac > 0 else float("nan")
+            line += f" | {r[0]:.0f} wall, {r[1]:.0f} /cpu-s, ratio {ratio:.1f}"
+        print(line, flush=True)
     if not args.no_memory:
         table_memory()
 

@@ -210,8 +210,10 @@ def core_step(params: Params, embed_dim: int, state: State, *,
 
 
 def reset_state(state: State, start: torch.Tensor | None) -> State:
-    """Zero the state of the slots that begin a new episode (start: (B,) bool)."""
-    if start is None or not bool(start.any()):
+    """Zero the state of the slots that begin a new episode (start: (B,) bool).
+
+    No data-dependent branch, so that it runs under ``torch.func.vmap`` (packed runs)."""
+    if start is None:
         return state
     keep = (~start).to(state[0].dtype).unsqueeze(-1)
     return (state[0] * keep, state[1] * keep, state[2] * keep)
