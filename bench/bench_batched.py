@@ -12,8 +12,10 @@ warm-up:
 * ``ratio``: batched per CPU-second / async per CPU-second.
 
 Rows the batched engine does not implement yet (SAVN, meta-training; packed runs other
-than A3C) print ``n/a``; ``packed 4x16`` is :class:`~geonav.policy.batched.packed.PackedA3C`. Last, the memory of the observation tables of the whole-scene 15 m task of a
-1.2 km scene (images and frozen features) with B = 256 slots, and the process's peak RSS.
+than A3C) print ``n/a``; ``packed 4x16`` is :class:`~geonav.policy.batched.packed.PackedA3C`
+with 4 runs of 16 slots. Last, the memory of the observation tables of the whole-scene
+15 m task of a 1.2 km scene (images and frozen features) with B = 256 slots, and the
+process's peak RSS.
 
 Run: ``.venv/bin/python bench/bench_batched.py [--seconds 4] [--only a3c,isar2]``.
 Figures on a shared machine vary with its load; compare the ratios of one run.
