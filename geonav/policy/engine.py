@@ -6,10 +6,11 @@ one process; ``engine = "async"`` is the per-episode, multi-process trainer of
 the paper-faithful asynchronous form and the reference the batched learners are tested
 against. Both write the same run folders, checkpoints and metrics.
 
-Where the batched engine does not implement a combination (SAVN; ISAR with the
-trainable CNN, the curriculum teacher or without the partial-window flush; the
-previous-view input slot), :func:`resolve` falls back to the async trainer, logs a
-warning and says so in the returned reason, which the trainers record in config.json.
+Where the batched engine does not implement a combination (ISAR or SAVN with the
+trainable CNN or the curriculum teacher; ISAR without the partial-window flush; SAVN
+with the truncation bootstrap; the previous-view input slot), :func:`resolve` falls
+back to the async trainer, logs a warning and says so in the returned reason, which
+the trainers record in config.json.
 PPO exists on the batched engine only.
 """
 
@@ -40,15 +41,17 @@ class EngineChoice:
 
 def _fallback_reason(algo: str, net_cfg: Any, cfg: Any, teacher: bool, prev_view: bool
                      ) -> str | None:
-    if algo == "savn":
-        return "SAVN is not implemented on the batched engine yet"
     if net_cfg is not None and getattr(net_cfg, "prev_view_input", False):
         return "the previous-view input slot is not implemented on the batched engine"
-    if algo == "isar":
+    if algo in ("isar", "savn"):
         if net_cfg is None or net_cfg.encoder == "cnn":
-            return "batched ISAR needs a frozen encoder (the trainable CNN is not factored)"
+            return (f"batched {algo.upper()} needs a frozen encoder (the trainable CNN is "
+                    "not factored)")
         if teacher or prev_view:
             return "the curriculum teacher is not implemented on the batched engine"
+        if cfg is not None and getattr(cfg.loss, "bootstrap_on_truncation", False) and \
+                algo == "savn":
+            return "SAVN's truncation bootstrap is implemented on the async engine only"
         if cfg is not None and not getattr(cfg, "flush_partial_window", True):
             return "flush_partial_window = false is implemented on the async engine only"
     return None
@@ -69,10 +72,11 @@ def resolve(algo: str, engine: str = "batched", net_cfg: Any = None, cfg: Any = 
         if reason is None:
             from geonav.policy.batched.isar import BatchedISARTrainer
             from geonav.policy.batched.ppo import BatchedPPOTrainer
+            from geonav.policy.batched.savn import BatchedSAVNTrainer
             from geonav.policy.batched.trainer import BatchedA3CTrainer
 
             cls = {"a3c": BatchedA3CTrainer, "isar": BatchedISARTrainer,
-                   "ppo": BatchedPPOTrainer}[algo]
+                   "savn": BatchedSAVNTrainer, "ppo": BatchedPPOTrainer}[algo]
             return EngineChoice(cls, "batched")
         if algo == "ppo":
             raise ConfigError(f"PPO runs on the batched engine only, and {reason}")

@@ -265,6 +265,9 @@ class BatchedTrainer(A3CTrainer):
         self.apply_gradients()
 
     def apply_gradients(self) -> None:
+        for p in self.params_list:  # unused parameters step with a zero gradient, as async
+            if p.grad is None:
+                p.grad = torch.zeros_like(p)
         if self.on_gradients is not None:
             self.on_gradients([p.grad for p in self.params_list])
         if self.cfg.max_grad_norm:
