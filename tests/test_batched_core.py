@@ -212,3 +212,63 @@ def test_masked_gae_equals_per_episode_segments():
                                  0.9, 0.8)
             np.testing.assert_allclose(ret[t0:t1, s], r1[:, 0], atol=1e-12)
             np.testing.assert_allclose(adv[t0:t1, s], a1[:, 0], atol=1e-12)
+
+
+@pytest.mark.parametrize("b", [1, 5])
+def test_savn_episode_meta_gradient_equals_functional_call(setup, b):
+    """SAVN: inner steps on the learned loss (TCN over [h, pi]), meta-loss L_AC over the
+    episode; gradient w.r.t. phi and Lambda, slots on different targets and states."""
+    from torch.nn import functional as F
+
+    from geonav.policy.functional import segment_forward
+    from geonav.policy.savn import InteractionLoss
+
+    model, table = setup
+    torch.manual_seed(7)
+    tcn = InteractionLoss(3, 4).double()
+    k, segs, alpha = 3, 3, 0.3
+    views, targets, actions, rewards, state = _window_data(model, table, b, k, segs, seed=30 + b)
+    lam = dict(tcn.named_parameters())
+    leaves = list(model.parameters()) + list(tcn.parameters())
+    # batched
+    params, adapted, st = dict(model.named_parameters()), {}, state
+    logits, values = [], []
+    for s_ in range(segs):
+        sl = slice(s_ * k, (s_ + 1) * k)
+        rec, hs, lgs = Recorder(), [], []
+        for t in range(sl.start, sl.stop):
+            lg, v, st = factored_forward(params, model.cfg.embed_dim, table[views[t]][None],
+                                         table[targets][None], st, adapted, rec)
+            hs.append(st[0])
+            lgs.append(lg[0])
+            logits.append(lg[0])
+            values.append(v[0])
+        if s_ < segs - 1:
+            rows = torch.cat([torch.stack(hs, 1), F.softmax(torch.stack(lgs, 1), -1)], -1)
+            l_int = torch.func.vmap(
+                lambda r: torch.func.functional_call(tcn, lam, (r,)))(rows).sum()
+            adapted = rec.inner_factors(l_int, adapted, alpha, create_graph=True)
+    meta = _batched_segment_loss(torch.stack(logits), torch.stack(values), actions, rewards,
+                                 torch.zeros(b, dtype=torch.float64))
+    got = torch.autograd.grad(meta, leaves)
+    # reference: functional_call with explicitly adapted parameters, slot by slot
+    ref_total = 0.0
+    for s in range(b):
+        theta = dict(model.named_parameters())
+        st = (state[0][s:s + 1], state[1][s:s + 1], state[2][s:s + 1])
+        lgs, vs = [], []
+        for s_ in range(segs):
+            sl = slice(s_ * k, (s_ + 1) * k)
+            lg, v, hs, st = segment_forward(model, theta, table[views[sl, s]],
+                                            table[targets[s]], st, hidden=True)
+            lgs.append(lg)
+            vs.append(v)
+            if s_ < segs - 1:
+                theta = sgd_step(theta, tcn(torch.cat([hs, F.softmax(lg, -1)], -1)), alpha,
+                                 create_graph=True)
+        ref_total = ref_total + actor_critic_loss(torch.cat(lgs), torch.cat(vs), actions[:, s],
+                                                  rewards[:, s], 0.0, LOSS).total
+    ref = torch.autograd.grad(ref_total, leaves)
+    for a, r in zip(got, ref, strict=True):
+        torch.testing.assert_close(a, r, atol=TOL, rtol=0)
+    assert float(got[-1].abs().sum()) > 0  # Lambda gets its second-order gradient
