@@ -1,6 +1,7 @@
 """Helpers of the batched-engine tests: greedy success over every start cell."""
 
 import numpy as np
+import torch
 
 from geonav.policy.evaluation import RandomAgent, evaluate
 
@@ -19,3 +20,23 @@ def random_sr(env, seeds=5):
     """The uniformly random agent's success rate from every start, averaged over seeds."""
     return float(np.mean([evaluate(RandomAgent(seed=s), env, starts=all_starts(env),
                                    seed=s).success_rate for s in range(seeds)]))
+
+
+def first_update_grads(ref, bat):
+    """The gradients of the first update of a reference trainer's inline worker (its
+    first episode) and of a batched trainer (its first update), and that episode's record."""
+    worker = ref.inline_worker()
+    ref_grads, got = [], []
+    worker.on_gradients = lambda gs: ref_grads.append([g.clone() for g in gs])
+    worker.events = []
+    rec = worker.run_episode(1)
+    bat._setup()
+    bat.on_gradients = lambda gs: got.append([g.clone() for g in gs])
+    finals, _ = bat.update()
+    return ref_grads[0], got[0], rec, worker, finals
+
+
+def assert_grads_close(names, ref, got, atol, rtol):
+    assert len(got) == len(ref) == len(names)
+    for n, a, b in zip(names, ref, got, strict=True):
+        torch.testing.assert_close(b, a, atol=atol, rtol=rtol, msg=n)

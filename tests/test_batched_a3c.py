@@ -2,7 +2,7 @@
 
 import pytest
 import torch
-from batched_helpers import greedy_sr, random_sr
+from batched_helpers import assert_grads_close, first_update_grads, greedy_sr, random_sr
 
 from geonav.errors import ConfigError
 from geonav.policy.a3c import A3CTrainer
@@ -20,19 +20,11 @@ def test_b1_first_update_equals_reference_worker(encoder):
     net = tiny_net(encoder, 32, size=16)
     cfg = A3CConfig(episodes=1, workers=0, t_max=3, seed=4)
     ref = A3CTrainer(factory, net, cfg, tensorboard=False)
-    worker = ref.inline_worker()
-    ref_grads: list = []
-    worker.on_gradients = lambda gs: ref_grads.append([g.clone() for g in gs])
-    rec = worker.run_episode(1)
-    assert rec["length"] > cfg.t_max  # the first rollout lies inside the first episode
     bat = BatchedA3CTrainer(factory, net, cfg, batch=1, tensorboard=False)
-    bat._setup()
-    got: list = []
-    bat.on_gradients = lambda gs: got.append([g.clone() for g in gs])
-    bat.update()
+    ref_grads, got, rec, _, _ = first_update_grads(ref, bat)
+    assert rec["length"] > cfg.t_max  # the first rollout lies inside the first episode
     names = [n for n, _ in ref.model.named_parameters()]
-    for n, a, b in zip(names, ref_grads[0], got[0], strict=True):
-        torch.testing.assert_close(b, a, atol=2e-6, rtol=1e-5, msg=n)
+    assert_grads_close(names, ref_grads, got, 2e-6, 1e-5)
 
 
 def test_learns_tiny_task_and_resumes(tmp_path):

@@ -1,8 +1,7 @@
 """Batched ISAR: the reference worker's first adaptive update at B = 1, learning, refusals."""
 
 import pytest
-import torch
-from batched_helpers import greedy_sr, random_sr
+from batched_helpers import assert_grads_close, first_update_grads, greedy_sr, random_sr
 
 from geonav.errors import ConfigError
 from geonav.policy.batched.isar import BatchedISARTrainer
@@ -18,21 +17,12 @@ def test_b1_first_window_equals_reference_worker(second_order):
     cfg = ISARConfig(episodes=1, workers=0, n_steps=2, k_segments=3, alpha=0.5, seed=4,
                      second_order=second_order)
     ref = ISARTrainer(factory, net, cfg, tensorboard=False)
-    worker = ref.inline_worker()
-    ref_grads: list = []
-    worker.on_gradients = lambda gs: ref_grads.append([g.clone() for g in gs])
-    worker.events = []
-    rec = worker.run_episode(1)
+    bat = BatchedISARTrainer(factory, net, cfg, batch=1, tensorboard=False)
+    ref_grads, got, rec, worker, _ = first_update_grads(ref, bat)
     assert rec["length"] > cfg.n_steps * cfg.k_segments  # the first window is complete
     assert worker.events[:3] == [("inner", 2), ("inner", 4), ("adapt", 6, 3)]
-    bat = BatchedISARTrainer(factory, net, cfg, batch=1, tensorboard=False)
-    bat._setup()
-    got: list = []
-    bat.on_gradients = lambda gs: got.append([g.clone() for g in gs])
-    bat.update()
     names = [n for n, _ in ref.model.named_parameters()]
-    for n, a, b in zip(names, ref_grads[0], got[0], strict=True):
-        torch.testing.assert_close(b, a, atol=1e-5, rtol=1e-4, msg=n)
+    assert_grads_close(names, ref_grads, got, 1e-5, 1e-4)
 
 
 def test_refuses_what_it_does_not_implement():

@@ -1,8 +1,7 @@
 """Batched SAVN: B = 1 equals the reference worker's episode meta-gradient; it learns."""
 
 import pytest
-import torch
-from batched_helpers import greedy_sr, random_sr
+from batched_helpers import assert_grads_close, first_update_grads, greedy_sr, random_sr
 
 from geonav.policy.batched.savn import BatchedSAVNTrainer
 from geonav.policy.meta_config import SAVNConfig
@@ -17,24 +16,15 @@ def test_b1_episode_meta_gradient_equals_reference(second_order):
     cfg = SAVNConfig(episodes=1, workers=0, k_steps=3, inner_steps=2, inner_lr=0.5, seed=4,
                      second_order=second_order)
     ref = SAVNTrainer(factory, net, cfg, tensorboard=False)
-    worker = ref.inline_worker()
-    ref_grads: list = []
-    worker.on_gradients = lambda gs: ref_grads.append([g.clone() for g in gs])
-    rec = worker.run_episode(1)
-    assert rec["inner_updates"] == 2  # the learned loss adapted theta twice
     bat = BatchedSAVNTrainer(factory, net, cfg, batch=1, tensorboard=False)
-    bat._setup()
-    got: list = []
-    bat.on_gradients = lambda gs: got.append([g.clone() for g in gs])
-    finals, _ = bat.update()
+    ref_grads, got, rec, _, finals = first_update_grads(ref, bat)
+    assert rec["inner_updates"] == 2  # the learned loss adapted theta twice
     assert [f["length"] for f in finals] == [rec["length"]]
     names = [n for n, _ in ref.model.named_parameters()] + \
         [f"ll.{n}" for n, _ in ref.aux["interaction_loss"].named_parameters()]
-    assert len(got[0]) == len(names)
-    for n, a, b in zip(names, ref_grads[0], got[0], strict=True):
-        torch.testing.assert_close(b, a, atol=1e-5, rtol=1e-4, msg=n)
+    assert_grads_close(names, ref_grads, got, 1e-5, 1e-4)
     if second_order:  # Lambda learns through the second-order path only
-        assert float(got[0][-1].abs().sum()) > 0
+        assert float(got[-1].abs().sum()) > 0
 
 
 @pytest.mark.slow

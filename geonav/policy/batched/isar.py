@@ -36,7 +36,7 @@ import torch
 
 from geonav.errors import ConfigError
 from geonav.policy.batched.core import Adapted, Factors, Recorder, factored_step, sample_actions
-from geonav.policy.batched.trainer import BatchedTrainer, loss_stats
+from geonav.policy.batched.trainer import BatchedTrainer, loss_stats, refuse_teacher
 from geonav.policy.isar import gradient_path
 from geonav.policy.losses import LossTerms, gae_returns, policy_value_terms
 from geonav.policy.meta_config import ISARConfig
@@ -60,9 +60,7 @@ class BatchedISARTrainer(BatchedTrainer):
 
     def __init__(self, env_factory: Any, net_cfg: Any = None, cfg: ISARConfig | None = None,
                  *, teacher: Any = None, prev_view: Any = None, **kwargs: Any) -> None:
-        if teacher is not None or prev_view is not None:
-            raise ConfigError("the curriculum teacher (KL prior or previous-view input) is "
-                              "not implemented on the batched engine; use engine = 'async'")
+        refuse_teacher(teacher, prev_view)
         cfg = cfg if cfg is not None else ISARConfig()
         if not cfg.flush_partial_window:
             raise ConfigError("flush_partial_window = false is implemented on engine = "

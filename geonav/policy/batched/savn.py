@@ -35,7 +35,7 @@ from torch.nn import functional as F
 from geonav.errors import ConfigError
 from geonav.policy.batched.core import Adapted, Recorder, factored_step, sample_actions
 from geonav.policy.batched.isar import values_dtype
-from geonav.policy.batched.trainer import BatchedTrainer, loss_stats
+from geonav.policy.batched.trainer import BatchedTrainer, loss_stats, refuse_teacher
 from geonav.policy.isar import gradient_path
 from geonav.policy.losses import LossTerms, gae_returns, policy_value_terms
 from geonav.policy.meta_config import SAVNConfig
@@ -52,9 +52,7 @@ class BatchedSAVNTrainer(BatchedTrainer):
 
     def __init__(self, env_factory: Any, net_cfg: Any = None, cfg: SAVNConfig | None = None,
                  *, teacher: Any = None, prev_view: Any = None, **kwargs: Any) -> None:
-        if teacher is not None or prev_view is not None:
-            raise ConfigError("the curriculum teacher (KL prior or previous-view input) is "
-                              "not implemented on the batched engine; use engine = 'async'")
+        refuse_teacher(teacher, prev_view)
         super().__init__(env_factory, net_cfg, cfg if cfg is not None else SAVNConfig(),
                          **kwargs)
 

@@ -100,6 +100,13 @@ class RolloutBatch:
     """(T, B) V(s_t) while acting (PPO)."""
 
 
+def refuse_teacher(teacher: Any, prev_view: Any) -> None:
+    """The curriculum's teacher (either option) runs on the async engine only."""
+    if teacher is not None or prev_view is not None:
+        raise ConfigError("the curriculum teacher (KL prior or previous-view input) is not "
+                          "implemented on the batched engine; use engine = 'async'")
+
+
 class BatchedTrainer(A3CTrainer):
     """The batched engine (see the module docstring); arguments as :class:`A3CTrainer`,
     plus ``batch`` (B, slots stepped together) and ``device`` ('cpu' or 'cuda').
