@@ -14,6 +14,7 @@ from geonav.policy.batched.core import (
     LAYERS,
     Recorder,
     factored_forward,
+    factored_step,
     sequence_forward,
 )
 from geonav.policy.config import LossConfig
@@ -105,7 +106,8 @@ def _batched_segment_loss(logits, values, actions, rewards, bootstrap):
                               torch.from_numpy(adv), LOSS).total
 
 
-def _batched_window(model, table, data, n_steps, k_segs, alpha, second_order, record=None):
+def _batched_window(model, table, data, n_steps, k_segs, alpha, second_order, record=None,
+                    gram=False):
     """phi -> K segments of N steps with an inner step per segment but the last, per slot;
     returns the window loss summed over slots (graph to phi)."""
     views, targets, actions, rewards, state = data
@@ -113,16 +115,24 @@ def _batched_window(model, table, data, n_steps, k_segs, alpha, second_order, re
     adapted = {}
     total = 0.0
     tgt_f = table[targets].unsqueeze(0)
+    g = table @ table.T if gram else None
     for k in range(k_segs):
         sl = slice(k * n_steps, (k + 1) * n_steps)
-        rec = Recorder()
-        logits, values, state = factored_forward(
-            params, model.cfg.embed_dim, table[views[sl]], tgt_f.expand(n_steps, -1, -1),
-            state, adapted, rec)
+        rec = Recorder(gram=g)
+        logits, values = [], []
+        for t in range(sl.start, sl.stop):
+            lg, v, state = factored_step(params, model.cfg.embed_dim, table[views[t]],
+                                         tgt_f[0], state, adapted, rec, None,
+                                         views[t] if gram else None, targets if gram else None)
+            logits.append(lg)
+            values.append(v)
+        logits, values = torch.stack(logits), torch.stack(values)
+        nxt = views[sl.stop % views.shape[0]]
         with torch.no_grad():  # bootstrap V(s_next) without advancing the state
-            _, v_next, _ = factored_forward(params, model.cfg.embed_dim,
-                                            table[views[sl.stop % views.shape[0]]][None],
-                                            tgt_f, state, adapted)
+            _, v_next, _ = factored_step(params, model.cfg.embed_dim, table[nxt], tgt_f[0],
+                                         state, adapted, None, None, nxt if gram else None,
+                                         targets if gram else None)
+            v_next = v_next[None]
         loss = _batched_segment_loss(logits, values, actions[sl], rewards[sl], v_next[0])
         total = total + loss
         if k < k_segs - 1:
@@ -157,32 +167,35 @@ def _ref_window(model, table, data, n_steps, k_segs, alpha, second_order):
     return total, thetas
 
 
-@pytest.mark.parametrize("b", [1, 5])
-def test_inner_updates_equal_functional_call(setup, b):
+@pytest.mark.parametrize("b,gram", [(1, False), (5, False), (5, True)])
+def test_inner_updates_equal_functional_call(setup, b, gram):
     """Per-slot adapted weights after each inner step equal theta - alpha grad (dense)."""
     model, table = setup
     alpha = 0.3  # large, so that an error in the factors shows
     data = _window_data(model, table, b, 3, 3, seed=10 + b)
     adapted_log = []
-    _batched_window(model, table, data, 3, 3, alpha, True, adapted_log)
+    _batched_window(model, table, data, 3, 3, alpha, True, adapted_log, gram=gram)
     _, thetas = _ref_window(model, table, data, 3, 3, alpha, True)
     phi = dict(model.named_parameters())
     for k, adapted in enumerate(adapted_log):
         for key, (wn, bn) in LAYERS.items():
-            dw, db = adapted[key].dense()
+            dw, db = adapted[key].dense(table)
             for s in range(b):
                 torch.testing.assert_close(phi[wn] + dw[s], thetas[s][k][wn], atol=TOL, rtol=0)
                 torch.testing.assert_close(phi[bn] + db[s], thetas[s][k][bn], atol=TOL, rtol=0)
 
 
-@pytest.mark.parametrize("b,second_order", [(1, True), (5, True), (5, False)])
-def test_window_gradient_equals_functional_call(setup, b, second_order):
-    """ISAR's window gradient w.r.t. phi (second and first order), summed over slots."""
+@pytest.mark.parametrize("b,second_order,gram", [(1, True, False), (5, True, False),
+                                                 (5, False, False), (5, True, True),
+                                                 (5, False, True)])
+def test_window_gradient_equals_functional_call(setup, b, second_order, gram):
+    """ISAR's window gradient w.r.t. phi (second and first order), summed over slots; the
+    view embeddings' factors dense or as table rows with the Gram matrix."""
     model, table = setup
     data = _window_data(model, table, b, 2, 3, seed=20 + b)
     phi = list(model.parameters())
-    got = torch.autograd.grad(_batched_window(model, table, data, 2, 3, 0.3, second_order),
-                              phi)
+    got = torch.autograd.grad(_batched_window(model, table, data, 2, 3, 0.3, second_order,
+                                              gram=gram), phi)
     ref_loss, _ = _ref_window(model, table, data, 2, 3, 0.3, second_order)
     ref = torch.autograd.grad(ref_loss, phi)
     for a, r in zip(got, ref, strict=True):

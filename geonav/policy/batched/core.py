@@ -29,6 +29,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import torch
 from torch.nn import functional as F
@@ -64,36 +65,62 @@ def check_supported(model: ActorCritic, *, adapted: bool = False) -> None:
 
 @dataclass
 class Factors:
-    """Per-slot rank-one updates of one linear layer (see the module docstring)."""
+    """Per-slot rank-one updates of one linear layer (see the module docstring).
+
+    For the view embeddings, whose inputs are rows of a constant feature table, the
+    inputs may be kept as row indices (``V_idx``) with the table's Gram matrix: then
+    ``V x`` is a lookup ``gram[V_idx, x_idx]`` instead of a (B, R, F) product.
+    """
 
     U: torch.Tensor | None = None
     """(B, R, out): -alpha times the output gradients."""
     V: torch.Tensor | None = None
-    """(B, R, in): the layer inputs."""
+    """(B, R, in): the layer inputs (or None with ``V_idx``)."""
     db: torch.Tensor | None = None
     """(B, out): bias change."""
+    V_idx: torch.Tensor | None = None
+    """(B, R) table rows of the inputs (with ``gram``)."""
+    gram: torch.Tensor | None = None
+    """(C, C) table @ table.T of the constant feature table the rows index."""
 
-    def correction(self, x: torch.Tensor) -> torch.Tensor | None:
-        """(B, in) -> (B, out): (W_s - W) x + (b_s - b), or None when empty."""
+    def correction(self, x: torch.Tensor, idx: torch.Tensor | None = None
+                   ) -> torch.Tensor | None:
+        """(B, in) -> (B, out): (W_s - W) x + (b_s - b), or None when empty (``idx``: the
+        table rows of x, for factors kept as row indices)."""
         out = self.db
-        if self.U is not None and self.V is not None:
-            vx = torch.bmm(self.V, x.unsqueeze(-1))                    # (B, R, 1)
-            uvx = torch.bmm(self.U.transpose(1, 2), vx).squeeze(-1)    # (B, out)
+        if self.U is not None:
+            if self.V_idx is not None:
+                assert self.gram is not None and idx is not None
+                vx = self.gram[self.V_idx, idx.unsqueeze(1)].unsqueeze(-1)  # (B, R, 1)
+            else:
+                assert self.V is not None
+                vx = torch.bmm(self.V, x.unsqueeze(-1))                     # (B, R, 1)
+            uvx = torch.bmm(self.U.transpose(1, 2), vx).squeeze(-1)        # (B, out)
             out = uvx if out is None else out + uvx
         return out
 
-    def add(self, u: torch.Tensor, v: torch.Tensor, lr: float) -> Factors:
-        """These factors plus the SGD step -lr * sum_r u_r v_r^T: u (B, R, out), v (B, R, in)."""
+    def add(self, u: torch.Tensor, v: torch.Tensor, lr: float,
+            v_idx: torch.Tensor | None = None, gram: torch.Tensor | None = None) -> Factors:
+        """These factors plus the SGD step -lr * sum_r u_r v_r^T: u (B, R, out), v (B, R, in)
+        (or its table rows ``v_idx`` (B, R) with the table's ``gram``)."""
         U = -lr * u
         db = U.sum(1)
+        if v_idx is not None:
+            return Factors(U if self.U is None else torch.cat([self.U, U], 1), None,
+                           db if self.db is None else self.db + db,
+                           v_idx if self.V_idx is None else torch.cat([self.V_idx, v_idx], 1),
+                           gram)
         return Factors(U if self.U is None else torch.cat([self.U, U], 1),
                        v if self.V is None else torch.cat([self.V, v], 1),
                        db if self.db is None else self.db + db)
 
-    def dense(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """(B, out, in) weight change and (B, out) bias change (tests)."""
-        assert self.U is not None and self.V is not None and self.db is not None
-        return torch.bmm(self.U.transpose(1, 2), self.V), self.db
+    def dense(self, table: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B, out, in) weight change and (B, out) bias change (tests; ``table`` resolves
+        row-index factors)."""
+        assert self.U is not None and self.db is not None
+        V = self.V if self.V_idx is None else table[self.V_idx]  # type: ignore[index]
+        assert V is not None
+        return torch.bmm(self.U.transpose(1, 2), V), self.db
 
 
 Adapted = dict[str, Factors]
@@ -104,10 +131,14 @@ class Recorder:
     """Collects (layer key, input, output) of every adapted linear map of a segment, so
     that one ``autograd.grad`` of the segment loss w.r.t. the outputs gives the u's."""
 
-    entries: list[tuple[str, torch.Tensor, torch.Tensor]] = field(default_factory=list)
+    entries: list[tuple[str, torch.Tensor, torch.Tensor, torch.Tensor | None]] = field(
+        default_factory=list)
+    gram: torch.Tensor | None = None
+    """The Gram matrix of the feature table, when inputs are recorded as row indices."""
 
-    def add(self, key: str, x: torch.Tensor, y: torch.Tensor) -> None:
-        self.entries.append((key, x, y))
+    def add(self, key: str, x: torch.Tensor, y: torch.Tensor,
+            idx: torch.Tensor | None = None) -> None:
+        self.entries.append((key, x, y, idx))
 
     def inner_factors(self, loss: torch.Tensor, adapted: Adapted, lr: float, *,
                       create_graph: bool, weights: torch.Tensor | None = None) -> Adapted:
@@ -120,14 +151,14 @@ class Recorder:
         """
         ys: list[torch.Tensor] = []
         pos: dict[int, int] = {}
-        for _, _, y in self.entries:
+        for _, _, y, _ in self.entries:
             if id(y) not in pos:
                 pos[id(y)] = len(ys)
                 ys.append(y)
         grads = torch.autograd.grad(loss, ys, create_graph=create_graph, retain_graph=True,
                                     allow_unused=True)
-        per_key: dict[str, tuple[list[torch.Tensor], list[torch.Tensor]]] = {}
-        for key, x, y in self.entries:
+        per_key: dict[str, tuple[list[torch.Tensor], list[torch.Tensor], list[Any]]] = {}
+        for key, x, y, idx in self.entries:
             g = grads[pos[id(y)]]
             if g is None:
                 g = torch.zeros_like(y)
@@ -135,27 +166,31 @@ class Recorder:
                 g, x = g.detach(), x.detach()
             if weights is not None:
                 g = g * weights.view(-1, 1).to(g.dtype)
-            us, vs = per_key.setdefault(key, ([], []))
+            us, vs, ids = per_key.setdefault(key, ([], [], []))
             us.append(g)
             vs.append(x)
+            ids.append(idx)
         out = dict(adapted)
-        for key, (us, vs) in per_key.items():
-            out[key] = adapted.get(key, Factors()).add(torch.stack(us, 1), torch.stack(vs, 1),
-                                                       lr)
+        for key, (us, vs, ids) in per_key.items():
+            by_index = self.gram is not None and all(i is not None for i in ids)
+            out[key] = adapted.get(key, Factors()).add(
+                torch.stack(us, 1), None if by_index else torch.stack(vs, 1),  # type: ignore
+                lr, torch.stack(ids, 1) if by_index else None, self.gram)
         return out
 
 
 def linear(params: Params, key: str, x: torch.Tensor, adapted: Adapted | None,
-           rec: Recorder | None) -> torch.Tensor:
-    """y = W_s x + b_s for a (B, in) input, recorded for inner gradients when asked."""
+           rec: Recorder | None, idx: torch.Tensor | None = None) -> torch.Tensor:
+    """y = W_s x + b_s for a (B, in) input, recorded for inner gradients when asked
+    (``idx``: x's rows of the constant feature table, for the Gram-matrix factors)."""
     wname, bname = LAYERS[key]
     y = F.linear(x, params[wname], params[bname])
     if adapted is not None and key in adapted:
-        corr = adapted[key].correction(x)
+        corr = adapted[key].correction(x, idx)
         if corr is not None:
             y = y + corr
     if rec is not None:
-        rec.add(key, x, y)
+        rec.add(key, x, y, idx)
     return y
 
 
@@ -167,9 +202,10 @@ def lstm_cell(gates: torch.Tensor, c: torch.Tensor) -> tuple[torch.Tensor, torch
 
 
 def target_embedding(params: Params, tgt_f: torch.Tensor, adapted: Adapted | None = None,
-                     rec: Recorder | None = None) -> torch.Tensor:
+                     rec: Recorder | None = None, idx: torch.Tensor | None = None
+                     ) -> torch.Tensor:
     """(B, F) target features -> (B, E) embeddings (constant over an episode segment)."""
-    return F.relu(linear(params, "target_embed", tgt_f, adapted, rec))
+    return F.relu(linear(params, "target_embed", tgt_f, adapted, rec, idx))
 
 
 def image_part(params: Params, embed_dim: int, obs_e: torch.Tensor, tgt_e: torch.Tensor
@@ -255,16 +291,18 @@ def sequence_forward(params: Params, embed_dim: int, table: torch.Tensor,
 
 def factored_step(params: Params, embed_dim: int, obs_f: torch.Tensor, tgt_f: torch.Tensor,
                   state: State, adapted: Adapted | None, rec: Recorder | None = None,
-                  start: torch.Tensor | None = None
+                  start: torch.Tensor | None = None, obs_idx: torch.Tensor | None = None,
+                  tgt_idx: torch.Tensor | None = None
                   ) -> tuple[torch.Tensor, torch.Tensor, State]:
     """One step for B slots with per-slot adapted weights, from (B, F) view features.
 
     Every linear map is evaluated per step (the adapted embeddings differ per slot), and
-    recorded in ``rec`` for the inner gradients.
+    recorded in ``rec`` for the inner gradients. ``obs_idx``/``tgt_idx`` (B,): the rows
+    of the features in a constant table whose Gram matrix the factors use.
     """
     state = reset_state(state, start)
-    tgt_e = target_embedding(params, tgt_f, adapted, rec)
-    obs_e = F.relu(linear(params, "obs_embed", obs_f, adapted, rec))
+    tgt_e = target_embedding(params, tgt_f, adapted, rec, tgt_idx)
+    obs_e = F.relu(linear(params, "obs_embed", obs_f, adapted, rec, obs_idx))
     return core_step(params, embed_dim, state, obs_e=obs_e, tgt_e=tgt_e, adapted=adapted,
                      rec=rec)
 

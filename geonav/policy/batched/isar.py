@@ -29,13 +29,14 @@ factored (the CLI falls back to the async engine for it).
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 import torch
 
 from geonav.errors import ConfigError
-from geonav.policy.batched.core import Adapted, Factors, Recorder, factored_step, sample_actions
+from geonav.policy.batched.core import Adapted, Recorder, factored_step, sample_actions
 from geonav.policy.batched.trainer import BatchedTrainer, loss_stats, refuse_teacher
 from geonav.policy.isar import gradient_path
 from geonav.policy.losses import LossTerms, gae_returns, policy_value_terms
@@ -46,8 +47,8 @@ from geonav.policy.model import detach_state
 def clear_slots(adapted: Adapted, keep: torch.Tensor) -> Adapted:
     """theta_s <- phi for the slots where ``keep`` (B,) is 0 (their factors zeroed)."""
     k = keep.view(-1, 1)
-    return {key: Factors(None if f.U is None else f.U * k.unsqueeze(-1), f.V,
-                         None if f.db is None else f.db * k) for key, f in adapted.items()}
+    return {key: replace(f, U=None if f.U is None else f.U * k.unsqueeze(-1),
+                         db=None if f.db is None else f.db * k) for key, f in adapted.items()}
 
 
 class BatchedISARTrainer(BatchedTrainer):
@@ -78,6 +79,7 @@ class BatchedISARTrainer(BatchedTrainer):
 
     def _setup(self) -> None:
         super()._setup()
+        self.gram = gram_matrix(self.table)
         self.inner = np.zeros(self.batch, np.int64)
         self.adapt = np.zeros(self.batch, np.int64)
 
@@ -93,7 +95,7 @@ class BatchedISARTrainer(BatchedTrainer):
         recorder, adapted weights (finished slots reset to phi), state, finished episodes)."""
         cfg, e, dev = self.cfg, self.net_cfg.embed_dim, self.device
         n, b = cfg.n_steps, self.batch
-        rec = Recorder()
+        rec = Recorder(gram=self.gram)
         logits, values, actions = [], [], []
         rewards = np.zeros((n, b))
         ends = np.zeros((n, b), bool)
@@ -104,14 +106,14 @@ class BatchedISARTrainer(BatchedTrainer):
         for t in range(n):
             vi, ti = self.slot_indices()
             logit, value, state = factored_step(params, e, self.table[vi], self.table[ti],
-                                                state, adapted, rec, self.fresh)
+                                                state, adapted, rec, self.fresh, vi, ti)
             a = sample_actions(logit, self.rng).to(dev)
             res = self.env_step(a)
             if end_values is not None and res.truncated.any():
                 with torch.no_grad():
                     fv = torch.from_numpy(res.final_view).to(dev)
                     _, v_end, _ = factored_step(params, e, self.table[fv], self.table[ti],
-                                                state, adapted)
+                                                state, adapted, None, None, fv, ti)
                 end_values[t] = np.where(res.truncated, v_end.cpu().numpy(), 0.0)
             logits.append(logit)
             values.append(value)
@@ -131,7 +133,7 @@ class BatchedISARTrainer(BatchedTrainer):
         with torch.no_grad():  # V(s_next) under theta_s, without advancing the state
             vi, ti = self.slot_indices()
             _, v_next, _ = factored_step(params, e, self.table[vi], self.table[ti], state,
-                                         adapted, None, self.fresh)
+                                         adapted, None, self.fresh, vi, ti)
         bootstrap = np.where(ends[-1], 0.0, v_next.to("cpu", torch.float64).numpy())
         lg, vs, acts = torch.stack(logits), torch.stack(values), torch.stack(actions)
         lc = cfg.loss
@@ -171,6 +173,18 @@ class BatchedISARTrainer(BatchedTrainer):
         terms = LossTerms(torch.tensor(0.0), torch.tensor(pl / b), torch.tensor(vl / b),
                           torch.tensor(ent / b))
         return finals, loss_stats(terms, cfg.n_steps * cfg.k_segments)
+
+
+GRAM_MAX_VIEWS = 8192
+"""Above this many views the (C, C) Gram matrix is not built (dense factors instead)."""
+
+
+def gram_matrix(table: torch.Tensor | None) -> torch.Tensor | None:
+    """table @ table.T of the frozen feature table (the view embeddings' factors look their
+    inner products up instead of multiplying (B, R, F) inputs), or None when too large."""
+    if table is None or table.shape[0] > GRAM_MAX_VIEWS:
+        return None
+    return table @ table.T
 
 
 def values_dtype(trainer: BatchedTrainer) -> torch.dtype:

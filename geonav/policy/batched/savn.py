@@ -34,7 +34,7 @@ from torch.nn import functional as F
 
 from geonav.errors import ConfigError
 from geonav.policy.batched.core import Adapted, Recorder, factored_step, sample_actions
-from geonav.policy.batched.isar import values_dtype
+from geonav.policy.batched.isar import gram_matrix, values_dtype
 from geonav.policy.batched.trainer import BatchedTrainer, loss_stats, refuse_teacher
 from geonav.policy.isar import gradient_path
 from geonav.policy.losses import LossTerms, gae_returns, policy_value_terms
@@ -55,6 +55,10 @@ class BatchedSAVNTrainer(BatchedTrainer):
         refuse_teacher(teacher, prev_view)
         super().__init__(env_factory, net_cfg, cfg if cfg is not None else SAVNConfig(),
                          **kwargs)
+
+    def _setup(self) -> None:
+        super()._setup()
+        self.gram = gram_matrix(self.table)
 
     def build_aux(self) -> dict[str, nn.Module]:
         return {"interaction_loss": InteractionLoss(self.cfg.k_steps, self.cfg.tcn_channels)}
@@ -92,12 +96,12 @@ class BatchedSAVNTrainer(BatchedTrainer):
         finals: list[dict[str, Any]] = []
         assert self.table is not None
         t = 0
-        rec = Recorder()
+        rec = Recorder(gram=self.gram)
         hs: list[torch.Tensor] = []
         while alive.any():
             vi, ti = self.slot_indices()
             logit, value, state = factored_step(params, e, self.table[vi], self.table[ti],
-                                                state, adapted, rec)
+                                                state, adapted, rec, None, vi, ti)
             hs.append(state[0])
             a = sample_actions(logit, self.rng).to(dev)
             res = venv.step(a.cpu().numpy(), autoreset=False)
@@ -123,7 +127,7 @@ class BatchedSAVNTrainer(BatchedTrainer):
                     adapted = rec.inner_factors((l_int * w).sum(), adapted, cfg.inner_lr,
                                                 create_graph=cfg.second_order, weights=w)
                     inner += can
-                rec = Recorder()
+                rec = Recorder(gram=self.gram)
         mask = torch.stack(masks)
         ends_np = np.stack(ends)
         lg, vs, acts = torch.stack(logits), torch.stack(values), torch.stack(actions)
