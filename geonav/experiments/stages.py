@@ -176,22 +176,20 @@ def _train_algo(p: dict[str, Any], env_factory: Any, callbacks: list[Any],
 def _meta_train(p: dict[str, Any], env_factory: Any, callbacks: list[Any],
                 resume: str | None) -> tuple[Any, int, str]:
     from geonav.policy.config import from_dict
-    from geonav.policy.meta import MetaTrainer
+    from geonav.policy.engine import build_meta_trainer
     from geonav.policy.meta_config import MetaConfig
 
     cfg, net, rest = _algo_cfg(p)
     eng = _engine_opts(rest)
-    if eng["engine"] == "batched":
-        log.info("meta-training is not implemented on the batched engine yet; async engine")
     meta_opts = {k: rest.pop(k) for k in list(rest) if k in MetaConfig.__dataclass_fields__}
     if rest:
         raise ConfigError(f"stage {p.get('stage')!r}: unknown meta-train option(s) "
                           f"{sorted(rest)}")
     meta = from_dict(MetaConfig, {**meta_opts, "episodes": p["episodes"],
                                   "workers": p["workers"], "seed": p["seed"]})
-    t = MetaTrainer(env_factory, _init_net(p, net, resume), p["algo"], cfg, meta,
-                    out_dir=p["out_dir"], resume=resume, callbacks=callbacks,
-                    tensorboard=False)
+    t = build_meta_trainer(p["algo"], eng["engine"], env_factory, _init_net(p, net, resume),
+                           cfg, meta, device=eng["device"], out_dir=p["out_dir"],
+                           resume=resume, callbacks=callbacks, tensorboard=False)
     if resume is None:
         _load_init(t.model, p.get("init_checkpoint"), t.env)
     result = t.train()

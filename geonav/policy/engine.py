@@ -117,4 +117,40 @@ def build_trainer(algo: str, engine: str, env_factory: Any, net_cfg: Any, cfg: A
     return trainer
 
 
-__all__ = ["ENGINES", "EngineChoice", "resolve", "build_trainer"]
+def build_meta_trainer(algo: str, engine: str, env_factory: Any, net_cfg: Any, base_cfg: Any,
+                       meta_cfg: Any, *, batch: int | None = None, device: str | None = None,
+                       **kwargs: Any) -> Any:
+    """Meta-training on the batched engine where it is implemented (SAVN base, E = 1, a
+    frozen encoder), else :class:`~geonav.policy.meta.MetaTrainer` (async, with a warning
+    when the batched engine was asked for). ``batch`` is unused: B is the meta-batch."""
+    if engine not in ENGINES:
+        raise ConfigError(f"engine must be one of {ENGINES}, not {engine!r}")
+    reason = None
+    if engine == "batched":
+        reason = _fallback_reason(algo, net_cfg, base_cfg, False, False)
+        if reason is None and algo != "savn":
+            reason = f"meta-training with the {algo} base is implemented on the async engine"
+        if reason is None and meta_cfg.episodes_per_task != 1:
+            reason = "batched meta-training runs E = 1 episode per task visit"
+        if reason is None:
+            from geonav.policy.batched.meta import BatchedMetaSAVN
+
+            trainer = BatchedMetaSAVN(env_factory, net_cfg, base_cfg, meta_cfg,
+                                      device=device or "cpu", **kwargs)
+            trainer.engine_choice = EngineChoice(BatchedMetaSAVN, "batched")
+            return trainer
+        log.warning("engine 'batched': %s; meta-training on engine 'async'", reason)
+    if device not in (None, "cpu"):
+        raise ConfigError(f"meta-training on the async engine runs on the CPU; device "
+                          f"{device!r} needs the batched engine")
+    from geonav.policy.meta import MetaTrainer
+
+    trainer = MetaTrainer(env_factory, net_cfg, algo, base_cfg, meta_cfg, **kwargs)
+    base = trainer.resolved_config
+    trainer.resolved_config = lambda: {**base(), "engine": {
+        "name": "async", "asked": engine, "fallback_reason": reason}}
+    trainer.engine_choice = EngineChoice(MetaTrainer, "async", reason)
+    return trainer
+
+
+__all__ = ["ENGINES", "EngineChoice", "resolve", "build_trainer", "build_meta_trainer"]

@@ -201,7 +201,7 @@ def run_meta_train(args: argparse.Namespace) -> int:
     """Handler of ``geonav meta-train``."""
     from geonav.policy.cli import EnvFactory, _TqdmProgress
     from geonav.policy.config import from_dict
-    from geonav.policy.meta import MetaTrainer
+    from geonav.policy.engine import build_meta_trainer
     from geonav.policy.meta_config import MetaConfig
 
     toml = _toml(args)
@@ -224,17 +224,10 @@ def run_meta_train(args: argparse.Namespace) -> int:
     net = net_cfg_from_args(args, toml, factory)
     if net is not None and args.obs_size is None:
         factory = replace(factory, obs_size_px=net.obs_size_px)
-    if args.engine == "batched":
-        import logging
-
-        logging.getLogger(__name__).warning(
-            "meta-training is not implemented on the batched engine yet; running on the "
-            "async engine")
-    if args.device != "cpu":
-        raise ConfigError("meta-training runs on the async engine (CPU); use --device cpu")
     progress = _TqdmProgress(args.no_progress)
-    result = MetaTrainer(factory, net, args.algo, base, meta, out_dir=args.out,
-                         resume=args.resume, callbacks=[progress.callback]).train()
+    result = build_meta_trainer(args.algo, args.engine, factory, net, base, meta,
+                                device=args.device, out_dir=args.out, resume=args.resume,
+                                callbacks=[progress.callback]).train()
     print(_summary(result))
     return 0
 

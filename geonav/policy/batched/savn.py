@@ -76,6 +76,10 @@ class BatchedSAVNTrainer(BatchedTrainer):
                     "kl_weight": 0.0})
         return rec
 
+    def next_round(self) -> None:
+        """Every slot starts a new episode (meta-training pins their tasks first)."""
+        self.venv.reset()
+
     def interaction_loss(self, rows: torch.Tensor) -> torch.Tensor:
         """(B, k, H + A) -> (B,) learned losses, the aux module applied per slot."""
         tcn = self.aux["interaction_loss"]
@@ -144,7 +148,7 @@ class BatchedSAVNTrainer(BatchedTrainer):
         self.fresh = torch.ones(b, dtype=torch.bool, device=dev)
         for f in finals:
             f["t0"] = float(self.t_episode[f["slot"]])
-        venv.reset()
+        self.next_round()
         self.t_episode[:] = time.perf_counter()
         out = LossTerms(terms.total / bf, terms.policy / bf, terms.value / bf,
                         terms.entropy / bf)
