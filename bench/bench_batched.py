@@ -11,9 +11,10 @@ warm-up:
 * ``batched B``: the batched engine with B slots (B = 1, 16, 64, 256);
 * ``ratio``: batched per CPU-second / async per CPU-second.
 
-Rows the batched engine does not implement yet (SAVN, meta-training; packed runs other
-than A3C) print ``n/a``; ``packed 4x16`` is :class:`~geonav.policy.batched.packed.PackedA3C`
-with 4 runs of 16 slots. Last, the memory of the observation tables of the whole-scene
+Rows the batched engine does not implement yet (meta-training with the ISAR base; packed
+runs other than A3C) print ``n/a``; ``packed 4x16`` is 4 runs of 16 slots of
+:class:`~geonav.policy.batched.packed.PackedA3C`; the batched meta-SAVN row's B is the
+meta-batch. Last, the memory of the observation tables of the whole-scene
 15 m task of a 1.2 km scene (images and frozen features) with B = 256 slots, and the
 process's peak RSS.
 
@@ -83,7 +84,8 @@ def configs(kind: str):
         "isar1": ("isar", frozen, ISARConfig(**common, second_order=False), 70),
         "savn": ("savn", frozen, SAVNConfig(**common), 70),
         "curriculum-stage": ("isar", frozen, ISARConfig(**common), 120),
-        "meta": ("meta-isar", frozen, ISARConfig(**common), 70),
+        "meta-isar": ("meta-isar", frozen, ISARConfig(**common), 70),
+        "meta-savn": ("meta-savn", frozen, SAVNConfig(**common), 70),
     }[kind]
 
 
@@ -96,8 +98,8 @@ def run_async(kind: str, seconds: float) -> tuple[float, float]:
     if algo == "ppo":
         return float("nan"), float("nan")
     clock = Clock(3, seconds)
-    if algo == "meta-isar":
-        t = MetaTrainer(env_factory(ms), net, "isar", cfg,
+    if algo.startswith("meta-"):
+        t = MetaTrainer(env_factory(ms), net, algo[5:], cfg,
                         MetaConfig(episodes=10**7, workers=0, checkpoint_every=0),
                         callbacks=[clock], keep_records=False, tensorboard=False)
     else:
@@ -114,6 +116,15 @@ def run_batched(kind: str, batch: int, seconds: float) -> tuple[float, float] | 
     algo, net, cfg, ms = configs(kind)
     if algo == "meta-isar":
         return None
+    if algo == "meta-savn":
+        from geonav.policy.batched.meta import BatchedMetaSAVN
+        from geonav.policy.meta_config import MetaConfig
+
+        clock = Clock(max(3, batch), seconds)
+        BatchedMetaSAVN(env_factory(ms), net, cfg, MetaConfig(episodes=10**7, batch_tasks=batch,
+                                                              checkpoint_every=0),
+                        callbacks=[clock], keep_records=False, tensorboard=False).train()
+        return clock.rates()
     choice = resolve(algo, "batched", net, cfg)
     if choice.engine != "batched":
         return None
@@ -172,7 +183,8 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
     kinds = args.only.split(",") if args.only else ["a3c", "a3c-cnn", "ppo", "isar2", "isar1",
-                                                      "savn", "meta", "curriculum-stage"]
+                                                      "savn", "meta-isar", "meta-savn",
+                                                      "curriculum-stage"]
     batches = [int(b) for b in args.batches.split(",")]
     head = f"{'row':17s} {'async wall':>10s} {'/cpu-s':>8s}"
     for b in batches:
