@@ -49,3 +49,29 @@ def test_learns_tiny_task():
     res = t.train()
     sr, rnd = greedy_sr(res.model, t.frozen, env), random_sr(env)
     assert sr >= rnd + 0.3, (sr, rnd)
+
+
+def test_b1_first_window_with_kl_teacher_equals_reference(tmp_path):
+    """The curriculum's KL prior (option A): teacher at another altitude of the lattice."""
+    from geonav.policy.a3c import A3CTrainer
+    from geonav.policy.config import A3CConfig
+    from geonav.policy.teacher import TeacherSpec
+
+    net = tiny_net("random", 32, size=16)
+    teacher_run = A3CTrainer(tiny_env_factory(cells=5, max_steps=12, alt_m=90.0), net,
+                             A3CConfig(episodes=3, workers=0, seed=1), out_dir=tmp_path,
+                             tensorboard=False).train()
+    factory = tiny_env_factory(cells=5, max_steps=12)
+    spec = TeacherSpec(str(teacher_run.checkpoint),
+                       tiny_env_factory(cells=5, max_steps=12, alt_m=90.0), budget=40)
+    cfg = ISARConfig(episodes=1, workers=0, n_steps=2, k_segments=3, alpha=0.5, seed=4)
+    ref = ISARTrainer(factory, net, cfg, teacher=spec, tensorboard=False)
+    bat = BatchedISARTrainer(factory, net, cfg, teacher=spec, batch=1, tensorboard=False)
+    ref_grads, got, rec, _, _ = first_update_grads(ref, bat)
+    assert rec["kl_weight"] == 1.0 and rec["length"] > 6
+    names = [n for n, _ in ref.model.named_parameters()]
+    assert_grads_close(names, ref_grads, got, 1e-5, 1e-4)
+    plain = BatchedISARTrainer(factory, net, cfg, batch=1, tensorboard=False)
+    _, no_kl, _, _, _ = first_update_grads(ISARTrainer(factory, net, cfg, tensorboard=False),
+                                           plain)
+    assert max(float((a - b).abs().max()) for a, b in zip(got, no_kl, strict=True)) > 1e-4

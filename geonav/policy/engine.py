@@ -47,8 +47,9 @@ def _fallback_reason(algo: str, net_cfg: Any, cfg: Any, teacher: bool, prev_view
         if net_cfg is None or net_cfg.encoder == "cnn":
             return (f"batched {algo.upper()} needs a frozen encoder (the trainable CNN is "
                     "not factored)")
-        if teacher or prev_view:
-            return "the curriculum teacher is not implemented on the batched engine"
+        if prev_view or (teacher and algo == "savn"):
+            return (f"the curriculum's {'input' if prev_view else 'KL'} teacher for "
+                    f"{algo} is not implemented on the batched engine")
         if cfg is not None and getattr(cfg.loss, "bootstrap_on_truncation", False) and \
                 algo == "savn":
             return "SAVN's truncation bootstrap is implemented on the async engine only"

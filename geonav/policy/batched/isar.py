@@ -37,8 +37,9 @@ import torch
 
 from geonav.errors import ConfigError
 from geonav.policy.batched.core import Adapted, Recorder, factored_step, sample_actions
+from geonav.policy.batched.teacher import BatchedTeacher, kl_terms
 from geonav.policy.batched.trainer import BatchedTrainer, loss_stats, refuse_teacher
-from geonav.policy.isar import gradient_path
+from geonav.policy.isar import gradient_path, teacher_record
 from geonav.policy.losses import LossTerms, gae_returns, policy_value_terms
 from geonav.policy.meta_config import ISARConfig
 from geonav.policy.model import detach_state
@@ -61,7 +62,8 @@ class BatchedISARTrainer(BatchedTrainer):
 
     def __init__(self, env_factory: Any, net_cfg: Any = None, cfg: ISARConfig | None = None,
                  *, teacher: Any = None, prev_view: Any = None, **kwargs: Any) -> None:
-        refuse_teacher(teacher, prev_view)
+        refuse_teacher(None, prev_view)
+        self.teacher_spec = teacher
         cfg = cfg if cfg is not None else ISARConfig()
         if not cfg.flush_partial_window:
             raise ConfigError("flush_partial_window = false is implemented on engine = "
@@ -74,19 +76,22 @@ class BatchedISARTrainer(BatchedTrainer):
                               "inner_updates": "per-slot rank-one factors of every linear "
                               "layer, autograd.grad w.r.t. the layer outputs (create_graph="
                               f"{self.cfg.second_order})"}
-        d["teacher"] = None
+        d["teacher"] = teacher_record(self.teacher_spec, None)
         return d
 
     def _setup(self) -> None:
         super()._setup()
         self.gram = gram_matrix(self.table)
+        self.teacher = BatchedTeacher(self.teacher_spec, self.batch, self.device) \
+            if self.teacher_spec is not None else None
+        self.lam = 0.0
         self.inner = np.zeros(self.batch, np.int64)
         self.adapt = np.zeros(self.batch, np.int64)
 
     def record(self, f: dict[str, Any], stats: dict[str, float]) -> dict[str, Any]:
         rec = super().record(f, stats)
         rec.update({"inner_updates": f["inner_updates"], "adaptive_updates":
-                    f["adaptive_updates"], "kl_weight": 0.0})
+                    f["adaptive_updates"], "kl_weight": self.lam})
         return rec
 
     def segment(self, params: Any, adapted: Adapted, state: Any
@@ -96,7 +101,7 @@ class BatchedISARTrainer(BatchedTrainer):
         cfg, e, dev = self.cfg, self.net_cfg.embed_dim, self.device
         n, b = cfg.n_steps, self.batch
         rec = Recorder(gram=self.gram)
-        logits, values, actions = [], [], []
+        logits, values, actions, tlogp = [], [], [], []
         rewards = np.zeros((n, b))
         ends = np.zeros((n, b), bool)
         end_values = np.zeros((n, b)) if cfg.loss.bootstrap_on_truncation else None
@@ -105,6 +110,8 @@ class BatchedISARTrainer(BatchedTrainer):
         assert self.table is not None
         for t in range(n):
             vi, ti = self.slot_indices()
+            if self.teacher is not None:
+                tlogp.append(self.teacher.step(vi, ti, self.fresh))
             logit, value, state = factored_step(params, e, self.table[vi], self.table[ti],
                                                 state, adapted, rec, self.fresh, vi, ti)
             a = sample_actions(logit, self.rng).to(dev)
@@ -143,6 +150,10 @@ class BatchedISARTrainer(BatchedTrainer):
         adv_t = torch.from_numpy(adv).to(dev, vs.dtype)
         full = policy_value_terms(lg, vs, acts, ret_t, adv_t, lc)
         mine = policy_value_terms(lg, vs, acts, ret_t, adv_t, lc, weights=current)
+        if self.lam > 0.0 and tlogp:  # + lambda KL(pi_T || pi_theta) in every L_int
+            kl = kl_terms(torch.stack(tlogp).to(lg.dtype), lg)
+            full = replace(full, total=full.total + self.lam * kl.sum())
+            mine = replace(mine, total=mine.total + self.lam * (kl * current).sum())
         return full, mine, rec, adapted, state, finals
 
     def update(self) -> tuple[list[dict[str, Any]], dict[str, float]]:
@@ -154,6 +165,8 @@ class BatchedISARTrainer(BatchedTrainer):
         window: list[torch.Tensor] = []
         finals: list[dict[str, Any]] = []
         pl = vl = ent = 0.0
+        # lambda of the stage's schedule at the next episode (one value per update)
+        self.lam = self.teacher.weight(self.episodes_done + 1) if self.teacher else 0.0
         for k in range(cfg.k_segments):
             full, mine, rec, adapted, state, fin = self.segment(params, adapted, state)
             finals += fin
