@@ -1,5 +1,7 @@
 """Batched ISAR: the reference worker's first adaptive update at B = 1, learning, refusals."""
 
+from dataclasses import replace
+
 import pytest
 from batched_helpers import assert_grads_close, first_update_grads, greedy_sr, random_sr
 
@@ -71,6 +73,10 @@ def test_b1_first_window_with_kl_teacher_equals_reference(tmp_path):
     assert rec["kl_weight"] == 1.0 and rec["length"] > 6
     names = [n for n, _ in ref.model.named_parameters()]
     assert_grads_close(names, ref_grads, got, 1e-5, 1e-4)
+    # lambda follows each episode's start number (slots finish out of order)
+    many = BatchedISARTrainer(factory, net, replace(cfg, episodes=10), teacher=replace(
+        spec, budget=8), batch=4, tensorboard=False).train()
+    assert sorted(r["kl_weight"] for r in many.records) == [0.0] * 8 + [0.5, 1.0]
     plain = BatchedISARTrainer(factory, net, cfg, batch=1, tensorboard=False)
     _, no_kl, _, _, _ = first_update_grads(ISARTrainer(factory, net, cfg, tensorboard=False),
                                            plain)

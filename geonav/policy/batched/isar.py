@@ -84,14 +84,14 @@ class BatchedISARTrainer(BatchedTrainer):
         self.gram = gram_matrix(self.table)
         self.teacher = BatchedTeacher(self.teacher_spec, self.batch, self.device) \
             if self.teacher_spec is not None else None
-        self.lam = 0.0
         self.inner = np.zeros(self.batch, np.int64)
         self.adapt = np.zeros(self.batch, np.int64)
 
     def record(self, f: dict[str, Any], stats: dict[str, float]) -> dict[str, Any]:
         rec = super().record(f, stats)
         rec.update({"inner_updates": f["inner_updates"], "adaptive_updates":
-                    f["adaptive_updates"], "kl_weight": self.lam})
+                    f["adaptive_updates"], "kl_weight": self.teacher.weight(f["started_as"])
+                    if self.teacher is not None else 0.0})
         return rec
 
     def segment(self, params: Any, adapted: Adapted, state: Any
@@ -101,7 +101,7 @@ class BatchedISARTrainer(BatchedTrainer):
         cfg, e, dev = self.cfg, self.net_cfg.embed_dim, self.device
         n, b = cfg.n_steps, self.batch
         rec = Recorder(gram=self.gram)
-        logits, values, actions, tlogp = [], [], [], []
+        logits, values, actions, tlogp, lams = [], [], [], [], []
         rewards = np.zeros((n, b))
         ends = np.zeros((n, b), bool)
         end_values = np.zeros((n, b)) if cfg.loss.bootstrap_on_truncation else None
@@ -112,6 +112,7 @@ class BatchedISARTrainer(BatchedTrainer):
             vi, ti = self.slot_indices()
             if self.teacher is not None:
                 tlogp.append(self.teacher.step(vi, ti, self.fresh))
+                lams.append([self.teacher.weight(int(k)) for k in self.slot_episode])
             logit, value, state = factored_step(params, e, self.table[vi], self.table[ti],
                                                 state, adapted, rec, self.fresh, vi, ti)
             a = sample_actions(logit, self.rng).to(dev)
@@ -150,10 +151,11 @@ class BatchedISARTrainer(BatchedTrainer):
         adv_t = torch.from_numpy(adv).to(dev, vs.dtype)
         full = policy_value_terms(lg, vs, acts, ret_t, adv_t, lc)
         mine = policy_value_terms(lg, vs, acts, ret_t, adv_t, lc, weights=current)
-        if self.lam > 0.0 and tlogp:  # + lambda KL(pi_T || pi_theta) in every L_int
-            kl = kl_terms(torch.stack(tlogp).to(lg.dtype), lg)
-            full = replace(full, total=full.total + self.lam * kl.sum())
-            mine = replace(mine, total=mine.total + self.lam * (kl * current).sum())
+        if tlogp:  # + lambda KL(pi_T || pi_theta) in every L_int, lambda of each episode
+            lam = torch.tensor(lams, dtype=lg.dtype, device=dev)                  # (N, B)
+            kl = kl_terms(torch.stack(tlogp).to(lg.dtype), lg) * lam
+            full = replace(full, total=full.total + kl.sum())
+            mine = replace(mine, total=mine.total + (kl * current).sum())
         return full, mine, rec, adapted, state, finals
 
     def update(self) -> tuple[list[dict[str, Any]], dict[str, float]]:
@@ -165,8 +167,6 @@ class BatchedISARTrainer(BatchedTrainer):
         window: list[torch.Tensor] = []
         finals: list[dict[str, Any]] = []
         pl = vl = ent = 0.0
-        # lambda of the stage's schedule at the next episode (one value per update)
-        self.lam = self.teacher.weight(self.episodes_done + 1) if self.teacher else 0.0
         for k in range(cfg.k_segments):
             full, mine, rec, adapted, state, fin = self.segment(params, adapted, state)
             finals += fin

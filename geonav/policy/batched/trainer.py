@@ -199,6 +199,10 @@ class BatchedTrainer(A3CTrainer):
                                   for x in self.model.initial_state(b))
         self.fresh = torch.ones(b, dtype=torch.bool, device=self.device)
         self.t_episode = np.full(b, time.perf_counter())
+        self.slot_episode = self.start_episode + 1 + np.arange(b)
+        """The number of each slot's current episode in start order (schedules by episode,
+        such as the curriculum teacher's lambda, read it)."""
+        self.next_episode = self.start_episode + 1 + b
 
     def rng_snapshot(self) -> dict[str, Any]:
         return {"engine": "batched", "torch": torch.get_rng_state(),
@@ -256,8 +260,12 @@ class BatchedTrainer(A3CTrainer):
         res = self.venv.step(actions.cpu().numpy())
         now = time.perf_counter()
         for f in res.final:
-            f["t0"] = float(self.t_episode[f["slot"]])
-            self.t_episode[f["slot"]] = now
+            s = f["slot"]
+            f["t0"] = float(self.t_episode[s])
+            f["started_as"] = int(self.slot_episode[s])
+            self.t_episode[s] = now
+            self.slot_episode[s] = self.next_episode
+            self.next_episode += 1
         self.fresh = torch.from_numpy(res.done).to(self.device)
         return res
 
