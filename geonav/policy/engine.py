@@ -136,8 +136,8 @@ def build_meta_trainer(algo: str, engine: str, env_factory: Any, net_cfg: Any, b
         if reason is None:
             from geonav.policy.batched.meta import BatchedMetaSAVN
 
-            trainer = BatchedMetaSAVN(env_factory, net_cfg, base_cfg, meta_cfg,
-                                      device=device or "cpu", **kwargs)
+            trainer: Any = BatchedMetaSAVN(env_factory, net_cfg, base_cfg, meta_cfg,
+                                           device=device or "cpu", **kwargs)
             trainer.engine_choice = EngineChoice(BatchedMetaSAVN, "batched")
             return trainer
         log.warning("engine 'batched': %s; meta-training on engine 'async'", reason)

@@ -125,7 +125,8 @@ class PackedA3C:
         finals: list[list[dict[str, Any]]] = [[] for _ in range(r)]
         with torch.no_grad():
             obs_pre, tgt_pre = self._tables(self.params)                       # (R, C, H)
-            start_state = tuple(x * (~self.fresh).unsqueeze(-1) for x in self.state)
+            keep = (~self.fresh).unsqueeze(-1)
+            start_state = (self.state[0] * keep, self.state[1] * keep, self.state[2] * keep)
             state = start_state
             vis, tis, acts, starts = [], [], [], []
             rewards = np.zeros((r, t_max, b))
@@ -133,7 +134,8 @@ class PackedA3C:
             for t in range(t_max):
                 vi, ti = self._indices()
                 starts.append(self.fresh)
-                state = tuple(x * (~self.fresh).unsqueeze(-1) for x in state)
+                keep = (~self.fresh).unsqueeze(-1)
+                state = (state[0] * keep, state[1] * keep, state[2] * keep)
                 logits, _, state = self._step(self.params, state,
                                               obs_pre[runs, vi] + tgt_pre[runs, ti])
                 a = torch.stack([sample_actions(logits[i], self.rngs[i]) for i in range(r)])
@@ -161,14 +163,14 @@ class PackedA3C:
         for i in range(r):
             ret[i], adv[i] = gae_returns(rewards[i], vals[i], boot[i], ends[i], lc.gamma,
                                          lc.tau)
-        to = {"device": self.device, "dtype": values.dtype}
+        dev, dt = self.device, values.dtype
         terms = policy_value_terms(logits, values, torch.stack(acts, 1),
-                                   torch.from_numpy(ret).to(**to), torch.from_numpy(adv).to(**to),
-                                   lc)
+                                   torch.from_numpy(ret).to(dev, dt),
+                                   torch.from_numpy(adv).to(dev, dt), lc)
         self.optimizer.zero_grad(set_to_none=True)
         (terms.total / b).backward()
         if cfg.max_grad_norm:  # clip_grad_norm_ per run
-            grads = [p.grad for p in self.params.values()]
+            grads = [p.grad for p in self.params.values() if p.grad is not None]
             norms = torch.stack([g.flatten(1).pow(2).sum(1) for g in grads]).sum(0).sqrt()
             coef = (cfg.max_grad_norm / (norms + 1e-6)).clamp(max=1.0)
             for g in grads:

@@ -83,7 +83,7 @@ class BatchedSAVNTrainer(BatchedTrainer):
     def interaction_loss(self, rows: torch.Tensor) -> torch.Tensor:
         """(B, k, H + A) -> (B,) learned losses, the aux module applied per slot."""
         tcn = self.aux["interaction_loss"]
-        lam = dict(tcn.named_parameters())
+        lam: dict[str, torch.Tensor] = dict(tcn.named_parameters())
         return torch.func.vmap(lambda r: torch.func.functional_call(tcn, lam, (r,)))(rows)
 
     def update(self) -> tuple[list[dict[str, Any]], dict[str, float]]:

@@ -39,7 +39,7 @@ class BatchedTeacher:
 
             def features(rows: torch.Tensor) -> torch.Tensor:
                 return self.model.features(images[rows])
-        self.params = dict(self.model.named_parameters())
+        self.params: dict[str, torch.Tensor] = dict(self.model.named_parameters())
         self.tables = ActingTables(self.params, self.model.cfg.embed_dim, venv.n_views,
                                    features)
         z = torch.zeros(n_slots, self.model.cfg.lstm_size, device=device)

@@ -132,7 +132,7 @@ class BatchedTrainer(A3CTrainer):
         # Adam state follows the parameters to the device (load_state_dict casts it).
         opt_state = self.optimizer.state_dict()
         self.model.to(self.device)
-        self.params_list = [p for p in self.model.parameters()]
+        self.params_list: list[torch.Tensor] = list(self.model.parameters())
         for m in self.aux.values():
             m.to(self.device)
             self.params_list += list(m.parameters())
