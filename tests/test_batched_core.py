@@ -179,6 +179,8 @@ def test_inner_updates_equal_functional_call(setup, b, gram):
     phi = dict(model.named_parameters())
     for k, adapted in enumerate(adapted_log):
         for key, (wn, bn) in LAYERS.items():
+            if wn not in phi:  # no previous-view slot in this network
+                continue
             dw, db = adapted[key].dense(table)
             for s in range(b):
                 torch.testing.assert_close(phi[wn] + dw[s], thetas[s][k][wn], atol=TOL, rtol=0)
@@ -285,3 +287,96 @@ def test_savn_episode_meta_gradient_equals_functional_call(setup, b):
     for a, r in zip(got, ref, strict=True):
         torch.testing.assert_close(a, r, atol=TOL, rtol=0)
     assert float(got[-1].abs().sum()) > 0  # Lambda gets its second-order gradient
+
+
+@pytest.fixture(scope="module")
+def prev_setup():
+    """A network with the extra previous-altitude slot, and a second feature table."""
+    from dataclasses import replace
+
+    torch.manual_seed(3)
+    model = ActorCritic(replace(tiny_net("random", 32, size=16), prev_view_input=True)).double()
+    with torch.no_grad():
+        model.actor.weight.mul_(50.0)
+        model.prev_embed.bias.normal_()  # zero-filled slot: ReLU(bias) must show
+    g = torch.Generator().manual_seed(5)
+    table = torch.rand(12, model.obs_embed.in_features, generator=g, dtype=torch.float64)
+    prev = torch.rand(12, model.obs_embed.in_features, generator=g, dtype=torch.float64)
+    return model, table, prev
+
+
+@pytest.mark.parametrize("with_views", [False, True])
+def test_prev_slot_forward_equals_module(prev_setup, with_views):
+    model, table, prev = prev_setup
+    g = torch.Generator().manual_seed(2)
+    T, b = 5, 4
+    views = torch.randint(0, 12, (T, b), generator=g)
+    targets = torch.randint(0, 12, (b,), generator=g)
+    state = _state(model, b, g)
+    params = dict(model.named_parameters())
+    pv = prev if with_views else None
+    logits, values, _ = sequence_forward(params, model.cfg.embed_dim, table, views, targets,
+                                         state, None, pv)
+    lf, vf, _ = factored_forward(params, model.cfg.embed_dim, table[views],
+                                 table[targets].expand(T, -1, -1), state, {}) \
+        if not with_views else (None, None, None)
+    for s in range(b):
+        st = (state[0][s:s + 1], state[1][s:s + 1], state[2][s:s + 1])
+        args = (table[views[:, s]].unsqueeze(1), table[targets[s]][None], st)
+        if with_views:
+            args = (*args, prev[views[:, s]].unsqueeze(1))
+        lg, v, _ = torch.func.functional_call(model, params, args, strict=True)
+        torch.testing.assert_close(logits[:, s], lg[:, 0], atol=TOL, rtol=0)
+        torch.testing.assert_close(values[:, s], v[:, 0], atol=TOL, rtol=0)
+        if lf is not None:
+            torch.testing.assert_close(lf[:, s], lg[:, 0], atol=TOL, rtol=0)
+
+
+def test_prev_slot_window_gradient_equals_functional_call(prev_setup):
+    """Second-order ISAR window with the previous-altitude views in the extra slot."""
+    model, table, prev = prev_setup
+    b, n, k, alpha = 4, 2, 3, 0.3
+    views, targets, actions, rewards, state = _window_data(model, table, b, n, k, seed=41)
+    params = dict(model.named_parameters())
+    adapted, st, total = {}, state, 0.0
+    for j in range(k):
+        rec, lgs, vs = Recorder(), [], []
+        for t in range(j * n, (j + 1) * n):
+            lg, v, st = factored_step(params, model.cfg.embed_dim, table[views[t]],
+                                      table[targets], st, adapted, rec,
+                                      prev_f=prev[views[t]])
+            lgs.append(lg)
+            vs.append(v)
+        nxt = views[((j + 1) * n) % views.shape[0]]
+        with torch.no_grad():
+            _, v_next, _ = factored_step(params, model.cfg.embed_dim, table[nxt],
+                                         table[targets], st, adapted, prev_f=prev[nxt])
+        loss = _batched_segment_loss(torch.stack(lgs), torch.stack(vs),
+                                     actions[j * n:(j + 1) * n], rewards[j * n:(j + 1) * n],
+                                     v_next)
+        total = total + loss
+        if j < k - 1:
+            adapted = rec.inner_factors(loss, adapted, alpha, create_graph=True)
+    got = torch.autograd.grad(total, list(model.parameters()))
+    ref_total = 0.0
+    for s in range(b):
+        theta = dict(params)
+        st = (state[0][s:s + 1], state[1][s:s + 1], state[2][s:s + 1])
+        for j in range(k):
+            sl = slice(j * n, (j + 1) * n)
+            args = (table[views[sl, s]].unsqueeze(1), table[targets[s]][None], st,
+                    prev[views[sl, s]].unsqueeze(1))
+            lg, v, st = torch.func.functional_call(model, theta, args, strict=True)
+            nxt = views[sl.stop % views.shape[0], s]
+            with torch.no_grad():
+                _, v_next, _ = torch.func.functional_call(
+                    model, theta, (table[nxt][None, None], table[targets[s]][None], st,
+                                   prev[nxt][None, None]), strict=True)
+            loss = actor_critic_loss(lg[:, 0], v[:, 0], actions[sl, s], rewards[sl, s],
+                                     float(v_next[0, 0]), LOSS).total
+            ref_total = ref_total + loss
+            if j < k - 1:
+                theta = sgd_step(theta, loss, alpha, create_graph=True)
+    ref = torch.autograd.grad(ref_total, list(model.parameters()))
+    for a, r in zip(got, ref, strict=True):
+        torch.testing.assert_close(a, r, atol=TOL, rtol=0)

@@ -81,3 +81,23 @@ def test_b1_first_window_with_kl_teacher_equals_reference(tmp_path):
     _, no_kl, _, _, _ = first_update_grads(ISARTrainer(factory, net, cfg, tensorboard=False),
                                            plain)
     assert max(float((a - b).abs().max()) for a, b in zip(got, no_kl, strict=True)) > 1e-4
+
+
+def test_b1_first_window_with_previous_view_input_equals_reference():
+    """The curriculum's option B: the extra slot fed the view at the previous altitude."""
+    from geonav.policy.teacher import PrevViewSpec
+
+    net = replace(tiny_net("random", 32, size=16), prev_view_input=True)
+    factory = tiny_env_factory(cells=5, max_steps=12)
+    spec = PrevViewSpec(tiny_env_factory(cells=5, max_steps=12, alt_m=90.0), 90.0)
+    cfg = ISARConfig(episodes=1, workers=0, n_steps=2, k_segments=3, alpha=0.5, seed=4)
+    ref = ISARTrainer(factory, net, cfg, prev_view=spec, tensorboard=False)
+    bat = BatchedISARTrainer(factory, net, cfg, prev_view=spec, batch=1, tensorboard=False)
+    ref_grads, got, rec, _, _ = first_update_grads(ref, bat)
+    assert rec["length"] > 6
+    names = [n for n, _ in ref.model.named_parameters()]
+    assert "prev_embed.weight" in names
+    assert_grads_close(names, ref_grads, got, 1e-5, 1e-4)
+    zero = BatchedISARTrainer(factory, net, cfg, batch=1, tensorboard=False)  # zero-filled
+    _, z, _, _, _ = first_update_grads(ISARTrainer(factory, net, cfg, tensorboard=False), zero)
+    assert max(float((a - b).abs().max()) for a, b in zip(got, z, strict=True)) > 1e-5

@@ -7,8 +7,8 @@ the paper-faithful asynchronous form and the reference the batched learners are 
 against. Both write the same run folders, checkpoints and metrics.
 
 Where the batched engine does not implement a combination (ISAR or SAVN with the
-trainable CNN or the curriculum teacher; ISAR without the partial-window flush; SAVN
-with the truncation bootstrap; the previous-view input slot), :func:`resolve` falls
+trainable CNN; SAVN with the curriculum's KL teacher or the truncation bootstrap; ISAR
+without the partial-window flush), :func:`resolve` falls
 back to the async trainer, logs a warning and says so in the returned reason, which
 the trainers record in config.json.
 PPO exists on the batched engine only.
@@ -41,15 +41,14 @@ class EngineChoice:
 
 def _fallback_reason(algo: str, net_cfg: Any, cfg: Any, teacher: bool, prev_view: bool
                      ) -> str | None:
-    if net_cfg is not None and getattr(net_cfg, "prev_view_input", False):
-        return "the previous-view input slot is not implemented on the batched engine"
+    if prev_view and algo not in ("isar", "savn"):
+        return f"the previous-altitude view input is implemented for isar and savn, not {algo}"
     if algo in ("isar", "savn"):
         if net_cfg is None or net_cfg.encoder == "cnn":
             return (f"batched {algo.upper()} needs a frozen encoder (the trainable CNN is "
                     "not factored)")
-        if prev_view or (teacher and algo == "savn"):
-            return (f"the curriculum's {'input' if prev_view else 'KL'} teacher for "
-                    f"{algo} is not implemented on the batched engine")
+        if teacher and algo == "savn":
+            return "the curriculum's KL teacher for savn is not implemented on the batched engine"
         if cfg is not None and getattr(cfg.loss, "bootstrap_on_truncation", False) and \
                 algo == "savn":
             return "SAVN's truncation bootstrap is implemented on the async engine only"

@@ -43,6 +43,7 @@ Params = dict[str, torch.Tensor]
 LAYERS: dict[str, tuple[str, str]] = {
     "obs_embed": ("obs_embed.weight", "obs_embed.bias"),
     "target_embed": ("target_embed.weight", "target_embed.bias"),
+    "prev_embed": ("prev_embed.weight", "prev_embed.bias"),
     "action_embed": ("action_embed.weight", "action_embed.bias"),
     "fc": ("fc.weight", "fc.bias"),
     "lstm_ih": ("lstm.weight_ih", "lstm.bias_ih"),
@@ -54,9 +55,6 @@ LAYERS: dict[str, tuple[str, str]] = {
 
 def check_supported(model: ActorCritic, *, adapted: bool = False) -> None:
     """Refuse what the batched forward does not implement (typed, actionable errors)."""
-    if model.cfg.prev_view_input:
-        raise ConfigError("the batched engine does not implement the previous-view input "
-                          "slot (NetConfig.prev_view_input); use engine = 'async'")
     if adapted and model.encoder is not None:
         raise ConfigError("per-episode adapted weights (ISAR, SAVN) on the batched engine "
                           "need a frozen encoder (encoder = 'random' or 'resnet18'); the "
@@ -208,33 +206,40 @@ def target_embedding(params: Params, tgt_f: torch.Tensor, adapted: Adapted | Non
     return F.relu(linear(params, "target_embed", tgt_f, adapted, rec, idx))
 
 
-def image_part(params: Params, embed_dim: int, obs_e: torch.Tensor, tgt_e: torch.Tensor
-               ) -> torch.Tensor:
-    """The FC layer's image columns plus its bias: W[:, :2E] cat(obs_e, tgt_e) + b, split
-    into two products so each can be evaluated once per distinct view (no factors)."""
-    w = params["fc.weight"]
-    return F.linear(obs_e, w[:, :embed_dim]) + F.linear(tgt_e, w[:, embed_dim:2 * embed_dim],
-                                                        params["fc.bias"])
+def view_slots(params: Params) -> int:
+    """Image inputs before the FC layer: current, target (, previous-altitude view)."""
+    return 3 if "prev_embed.weight" in params else 2
+
+
+def prev_embedding(params: Params, prev_f: torch.Tensor | None, like: torch.Tensor,
+                   adapted: Adapted | None = None, rec: Recorder | None = None
+                   ) -> torch.Tensor:
+    """(B, E) embedding of the previous-altitude view slot; None zero-fills its features
+    (as ActorCritic.forward with prev=None: the embedding is ReLU(bias))."""
+    f = like.new_zeros(like.shape) if prev_f is None else prev_f
+    return F.relu(linear(params, "prev_embed", f, adapted, rec))
 
 
 def core_step(params: Params, embed_dim: int, state: State, *,
               pre: torch.Tensor | None = None, obs_e: torch.Tensor | None = None,
-              tgt_e: torch.Tensor | None = None, adapted: Adapted | None = None,
-              rec: Recorder | None = None
+              tgt_e: torch.Tensor | None = None, prev_e: torch.Tensor | None = None,
+              adapted: Adapted | None = None, rec: Recorder | None = None
               ) -> tuple[torch.Tensor, torch.Tensor, State]:
     """One step for B slots from the image part: logits (B, A), value (B,), new state.
 
     Either ``pre`` (B, H), the FC layer's image columns plus bias (no factors), or the
-    embeddings ``obs_e``/``tgt_e`` (B, E) for the factored FC layer.
+    embeddings ``obs_e``/``tgt_e`` (and ``prev_e`` with the extra slot) (B, E) for the
+    factored FC layer.
     """
     h, c, p = state
     act_e = F.relu(linear(params, "action_embed", p, adapted, rec))
     w = params["fc.weight"]
     if pre is not None:
-        x = F.relu(pre + F.linear(act_e, w[:, 2 * embed_dim:]))
+        x = F.relu(pre + F.linear(act_e, w[:, view_slots(params) * embed_dim:]))
     else:
         assert obs_e is not None and tgt_e is not None
-        x = F.relu(linear(params, "fc", torch.cat([obs_e, tgt_e, act_e], -1), adapted, rec))
+        parts = [obs_e, tgt_e] + ([] if prev_e is None else [prev_e]) + [act_e]
+        x = F.relu(linear(params, "fc", torch.cat(parts, -1), adapted, rec))
     gates = linear(params, "lstm_ih", x, adapted, rec)
     gates = gates + linear(params, "lstm_hh", h, adapted, None)
     if rec is not None:  # the hidden matrix shares u = dL/dgates with the input matrix
@@ -257,7 +262,7 @@ def reset_state(state: State, start: torch.Tensor | None) -> State:
 
 def sequence_forward(params: Params, embed_dim: int, table: torch.Tensor,
                      view_idx: torch.Tensor, target_idx: torch.Tensor, state: State,
-                     starts: torch.Tensor | None = None
+                     starts: torch.Tensor | None = None, prev_table: torch.Tensor | None = None
                      ) -> tuple[torch.Tensor, torch.Tensor, State]:
     """T steps for B slots without per-slot factors, the image part once per view.
 
@@ -268,14 +273,15 @@ def sequence_forward(params: Params, embed_dim: int, table: torch.Tensor,
             rows of ``table`` (targets; a slot's target changes when it starts an episode).
         state: (h, c, p) before step 0, (B, ...) each.
         starts: (T, B) bool, step t begins a new episode in slot b (state zeroed before it).
+        prev_table: (C, F) features of the previous-altitude view at the same cells as
+            ``table``'s rows (the extra slot; None zero-fills it).
 
     Returns:
         logits (T, B, A), values (T, B), the state after step T.
     """
     p, e = params, embed_dim
     w = p["fc.weight"]
-    obs_e = F.relu(F.linear(table, p["obs_embed.weight"], p["obs_embed.bias"]))
-    obs_pre = F.linear(obs_e, w[:, :e])                                              # (C, H)
+    obs_pre = view_table_part(p, e, table, prev_table)                               # (C, H)
     tgt_pre = F.linear(target_embedding(p, table), w[:, e:2 * e], p["fc.bias"])     # (C, H)
     if target_idx.dim() == 1:
         target_idx = target_idx.unsqueeze(0).expand_as(view_idx)
@@ -292,19 +298,22 @@ def sequence_forward(params: Params, embed_dim: int, table: torch.Tensor,
 def factored_step(params: Params, embed_dim: int, obs_f: torch.Tensor, tgt_f: torch.Tensor,
                   state: State, adapted: Adapted | None, rec: Recorder | None = None,
                   start: torch.Tensor | None = None, obs_idx: torch.Tensor | None = None,
-                  tgt_idx: torch.Tensor | None = None
+                  tgt_idx: torch.Tensor | None = None, prev_f: torch.Tensor | None = None
                   ) -> tuple[torch.Tensor, torch.Tensor, State]:
     """One step for B slots with per-slot adapted weights, from (B, F) view features.
 
     Every linear map is evaluated per step (the adapted embeddings differ per slot), and
     recorded in ``rec`` for the inner gradients. ``obs_idx``/``tgt_idx`` (B,): the rows
-    of the features in a constant table whose Gram matrix the factors use.
+    of the features in a constant table whose Gram matrix the factors use. ``prev_f``
+    (B, F): the extra slot's previous-altitude view features (None zero-fills them).
     """
     state = reset_state(state, start)
     tgt_e = target_embedding(params, tgt_f, adapted, rec, tgt_idx)
     obs_e = F.relu(linear(params, "obs_embed", obs_f, adapted, rec, obs_idx))
-    return core_step(params, embed_dim, state, obs_e=obs_e, tgt_e=tgt_e, adapted=adapted,
-                     rec=rec)
+    prev_e = prev_embedding(params, prev_f, obs_f, adapted, rec) \
+        if view_slots(params) == 3 else None
+    return core_step(params, embed_dim, state, obs_e=obs_e, tgt_e=tgt_e, prev_e=prev_e,
+                     adapted=adapted, rec=rec)
 
 
 def factored_forward(params: Params, embed_dim: int, obs_f: torch.Tensor,
@@ -322,6 +331,19 @@ def factored_forward(params: Params, embed_dim: int, obs_f: torch.Tensor,
     return torch.stack(logits), torch.stack(values), state
 
 
+def view_table_part(params: Params, embed_dim: int, feats: torch.Tensor,
+                    prev_feats: torch.Tensor | None = None) -> torch.Tensor:
+    """(C, H) FC-layer image columns of views as the *current* view: W_obs relu(obs_embed)
+    (+ W_prev relu(prev_embed) of the previous-altitude view at the same cell)."""
+    w = params["fc.weight"]
+    e = embed_dim
+    out = F.linear(F.relu(F.linear(feats, params["obs_embed.weight"],
+                                   params["obs_embed.bias"])), w[:, :e])
+    if view_slots(params) == 3:
+        out = out + F.linear(prev_embedding(params, prev_feats, feats), w[:, 2 * e:3 * e])
+    return out
+
+
 class ActingTables:
     """No-grad image parts of the views met while acting, each computed once per update.
 
@@ -330,10 +352,12 @@ class ActingTables:
     """
 
     def __init__(self, params: Params, embed_dim: int, n_views: int,
-                 features: Callable[[torch.Tensor], torch.Tensor]) -> None:
+                 features: Callable[[torch.Tensor], torch.Tensor],
+                 prev_features: Callable[[torch.Tensor], torch.Tensor] | None = None) -> None:
         self.params = params
         self.embed_dim = embed_dim
         self.features = features
+        self.prev_features = prev_features
         w = params["fc.weight"]
         self._filled = torch.zeros(n_views, dtype=torch.bool, device=w.device)
         self._obs = torch.zeros(n_views, w.shape[0], dtype=w.dtype, device=w.device)
@@ -345,8 +369,8 @@ class ActingTables:
         if need.numel():
             p, e = self.params, self.embed_dim
             f = self.features(need)
-            obs_e = F.relu(F.linear(f, p["obs_embed.weight"], p["obs_embed.bias"]))
-            self._obs[need] = F.linear(obs_e, p["fc.weight"][:, :e])
+            self._obs[need] = view_table_part(
+                p, e, f, None if self.prev_features is None else self.prev_features(need))
             self._tgt[need] = F.linear(target_embedding(p, f), p["fc.weight"][:, e:2 * e],
                                        p["fc.bias"])
             self._filled[need] = True

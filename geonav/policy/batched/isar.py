@@ -38,7 +38,7 @@ import torch
 from geonav.errors import ConfigError
 from geonav.policy.batched.core import Adapted, Recorder, factored_step, sample_actions
 from geonav.policy.batched.teacher import BatchedTeacher, kl_terms
-from geonav.policy.batched.trainer import BatchedTrainer, loss_stats, refuse_teacher
+from geonav.policy.batched.trainer import BatchedTrainer, loss_stats
 from geonav.policy.isar import gradient_path, teacher_record
 from geonav.policy.losses import LossTerms, gae_returns, policy_value_terms
 from geonav.policy.meta_config import ISARConfig
@@ -62,8 +62,8 @@ class BatchedISARTrainer(BatchedTrainer):
 
     def __init__(self, env_factory: Any, net_cfg: Any = None, cfg: ISARConfig | None = None,
                  *, teacher: Any = None, prev_view: Any = None, **kwargs: Any) -> None:
-        refuse_teacher(None, prev_view)
         self.teacher_spec = teacher
+        self.prev_view_spec = prev_view
         cfg = cfg if cfg is not None else ISARConfig()
         if not cfg.flush_partial_window:
             raise ConfigError("flush_partial_window = false is implemented on engine = "
@@ -76,7 +76,7 @@ class BatchedISARTrainer(BatchedTrainer):
                               "inner_updates": "per-slot rank-one factors of every linear "
                               "layer, autograd.grad w.r.t. the layer outputs (create_graph="
                               f"{self.cfg.second_order})"}
-        d["teacher"] = teacher_record(self.teacher_spec, None)
+        d["teacher"] = teacher_record(self.teacher_spec, self.prev_view_spec)
         return d
 
     def _setup(self) -> None:
@@ -114,14 +114,16 @@ class BatchedISARTrainer(BatchedTrainer):
                 tlogp.append(self.teacher.step(vi, ti, self.fresh))
                 lams.append([self.teacher.weight(int(k)) for k in self.slot_episode])
             logit, value, state = factored_step(params, e, self.table[vi], self.table[ti],
-                                                state, adapted, rec, self.fresh, vi, ti)
+                                                state, adapted, rec, self.fresh, vi, ti,
+                                                self.prev_features(vi))
             a = sample_actions(logit, self.rng).to(dev)
             res = self.env_step(a)
             if end_values is not None and res.truncated.any():
                 with torch.no_grad():
                     fv = torch.from_numpy(res.final_view).to(dev)
                     _, v_end, _ = factored_step(params, e, self.table[fv], self.table[ti],
-                                                state, adapted, None, None, fv, ti)
+                                                state, adapted, None, None, fv, ti,
+                                                self.prev_features(fv))
                 end_values[t] = np.where(res.truncated, v_end.cpu().numpy(), 0.0)
             logits.append(logit)
             values.append(value)
@@ -141,7 +143,8 @@ class BatchedISARTrainer(BatchedTrainer):
         with torch.no_grad():  # V(s_next) under theta_s, without advancing the state
             vi, ti = self.slot_indices()
             _, v_next, _ = factored_step(params, e, self.table[vi], self.table[ti], state,
-                                         adapted, None, self.fresh, vi, ti)
+                                         adapted, None, self.fresh, vi, ti,
+                                         self.prev_features(vi))
         bootstrap = np.where(ends[-1], 0.0, v_next.to("cpu", torch.float64).numpy())
         lg, vs, acts = torch.stack(logits), torch.stack(values), torch.stack(actions)
         lc = cfg.loss

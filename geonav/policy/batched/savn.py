@@ -36,7 +36,7 @@ from geonav.errors import ConfigError
 from geonav.policy.batched.core import Adapted, Recorder, factored_step, sample_actions
 from geonav.policy.batched.isar import gram_matrix, values_dtype
 from geonav.policy.batched.trainer import BatchedTrainer, loss_stats, refuse_teacher
-from geonav.policy.isar import gradient_path
+from geonav.policy.isar import gradient_path, teacher_record
 from geonav.policy.losses import LossTerms, gae_returns, policy_value_terms
 from geonav.policy.meta_config import SAVNConfig
 from geonav.policy.savn import InteractionLoss
@@ -52,7 +52,8 @@ class BatchedSAVNTrainer(BatchedTrainer):
 
     def __init__(self, env_factory: Any, net_cfg: Any = None, cfg: SAVNConfig | None = None,
                  *, teacher: Any = None, prev_view: Any = None, **kwargs: Any) -> None:
-        refuse_teacher(teacher, prev_view)
+        refuse_teacher(teacher, None)
+        self.prev_view_spec = prev_view
         super().__init__(env_factory, net_cfg, cfg if cfg is not None else SAVNConfig(),
                          **kwargs)
 
@@ -67,7 +68,7 @@ class BatchedSAVNTrainer(BatchedTrainer):
         d = super().resolved_config()
         d["gradient_path"] = {**gradient_path(self.cfg), "path": "batched factored, "
                               "episode-synchronous rounds"}
-        d["teacher"] = None
+        d["teacher"] = teacher_record(None, self.prev_view_spec)
         return d
 
     def record(self, f: dict[str, Any], stats: dict[str, float]) -> dict[str, Any]:
@@ -105,7 +106,8 @@ class BatchedSAVNTrainer(BatchedTrainer):
         while alive.any():
             vi, ti = self.slot_indices()
             logit, value, state = factored_step(params, e, self.table[vi], self.table[ti],
-                                                state, adapted, rec, None, vi, ti)
+                                                state, adapted, rec, None, vi, ti,
+                                                self.prev_features(vi))
             hs.append(state[0])
             a = sample_actions(logit, self.rng).to(dev)
             res = venv.step(a.cpu().numpy(), autoreset=False)

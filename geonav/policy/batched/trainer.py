@@ -101,10 +101,11 @@ class RolloutBatch:
 
 
 def refuse_teacher(teacher: Any, prev_view: Any) -> None:
-    """The curriculum's teacher (either option) runs on the async engine only."""
+    """Refuse the curriculum's teacher options a batched learner does not implement."""
     if teacher is not None or prev_view is not None:
-        raise ConfigError("the curriculum teacher (KL prior or previous-view input) is not "
-                          "implemented on the batched engine; use engine = 'async'")
+        raise ConfigError("this curriculum teacher (KL prior or previous-view input) is not "
+                          "implemented for this learner on the batched engine; use engine = "
+                          "'async'")
 
 
 class BatchedTrainer(A3CTrainer):
@@ -116,6 +117,9 @@ class BatchedTrainer(A3CTrainer):
     """
 
     engine = "batched"
+    prev_view_spec: Any = None
+    """The curriculum's option B source (:class:`geonav.policy.teacher.PrevViewSpec`):
+    the extra input slot gets the view at the slot's cell at the previous altitude."""
     adapted_weights = False
     """True for learners with per-episode adapted weights (needs a frozen encoder)."""
 
@@ -188,6 +192,14 @@ class BatchedTrainer(A3CTrainer):
             self.venv.np_random.bit_generator.state = st["env"]
         self.venv.reset()
         dtype = next(self.model.parameters()).dtype
+        self.prev_table = None
+        if self.prev_view_spec is not None:
+            if self.frozen is None or not self.net_cfg.prev_view_input:
+                raise ConfigError("the previous-altitude view input on the batched engine "
+                                  "needs a frozen encoder and a network with the extra slot")
+            # the same lattice at the previous altitude: the same view indices
+            prev_env = LatticeVecEnv(self.prev_view_spec.env_factory(), 1)
+            self.prev_table = prev_env.feature_table(self.frozen).to(self.device, dtype)
         if self.frozen is not None:
             self.table = self.venv.feature_table(self.frozen).to(self.device, dtype)
             self.images = None
@@ -216,9 +228,15 @@ class BatchedTrainer(A3CTrainer):
         assert self.images is not None
         return self.model.features(self.images[rows])
 
+    def prev_features(self, rows: torch.Tensor) -> torch.Tensor | None:
+        """(n, F) features of the previous-altitude views at view indices, or None (the
+        extra slot, when the network has one, is zero-filled)."""
+        return None if self.prev_table is None else self.prev_table[rows]
+
     def acting_tables(self) -> ActingTables:
         return ActingTables(self.params(), self.net_cfg.embed_dim, self.venv.n_views,
-                            self.features)
+                            self.features,
+                            None if self.prev_table is None else self.prev_table.__getitem__)
 
     def slot_indices(self) -> tuple[torch.Tensor, torch.Tensor]:
         v = torch.from_numpy(self.venv.view_index).to(self.device)
@@ -350,7 +368,7 @@ class BatchedTrainer(A3CTrainer):
         table = self.features(uniq)
         logits, values, _ = sequence_forward(
             self.params(), self.net_cfg.embed_dim, table, inv[:n].view_as(view_idx),
-            inv[n:].view_as(target_idx), state, starts)
+            inv[n:].view_as(target_idx), state, starts, self.prev_features(uniq))
         return logits, values
 
     def advantages(self, ro: RolloutBatch, values: torch.Tensor
