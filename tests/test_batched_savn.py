@@ -36,3 +36,26 @@ def test_learns_tiny_task():
     res = t.train()
     sr, rnd = greedy_sr(res.model, t.frozen, env), random_sr(env)
     assert sr >= rnd + 0.3, (sr, rnd)
+
+
+def test_b1_with_kl_teacher_equals_reference(tmp_path):
+    """The curriculum's KL prior in the learned loss and the meta-loss (option A)."""
+    from geonav.policy.a3c import A3CTrainer
+    from geonav.policy.config import A3CConfig
+    from geonav.policy.teacher import TeacherSpec
+
+    net = tiny_net("random", 32, size=16)
+    teacher = A3CTrainer(tiny_env_factory(cells=5, max_steps=12, alt_m=90.0), net,
+                         A3CConfig(episodes=3, workers=0, seed=1), out_dir=tmp_path,
+                         tensorboard=False).train()
+    spec = TeacherSpec(str(teacher.checkpoint),
+                       tiny_env_factory(cells=5, max_steps=12, alt_m=90.0), budget=40)
+    factory = tiny_env_factory(cells=5, max_steps=12)
+    cfg = SAVNConfig(episodes=1, workers=0, k_steps=3, inner_steps=2, inner_lr=0.5, seed=4)
+    ref = SAVNTrainer(factory, net, cfg, teacher=spec, tensorboard=False)
+    bat = BatchedSAVNTrainer(factory, net, cfg, teacher=spec, batch=1, tensorboard=False)
+    ref_grads, got, rec, _, finals = first_update_grads(ref, bat)
+    assert rec["kl_weight"] == 1.0 and bat.record(finals[0], {})["kl_weight"] == 1.0
+    names = [n for n, _ in ref.model.named_parameters()] + \
+        [f"ll.{n}" for n, _ in ref.aux["interaction_loss"].named_parameters()]
+    assert_grads_close(names, ref_grads, got, 1e-5, 1e-4)

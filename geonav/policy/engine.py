@@ -7,8 +7,8 @@ the paper-faithful asynchronous form and the reference the batched learners are 
 against. Both write the same run folders, checkpoints and metrics.
 
 Where the batched engine does not implement a combination (ISAR or SAVN with the
-trainable CNN; SAVN with the curriculum's KL teacher or the truncation bootstrap; ISAR
-without the partial-window flush), :func:`resolve` falls
+trainable CNN; SAVN with the truncation bootstrap; ISAR without the partial-window
+flush), :func:`resolve` falls
 back to the async trainer, logs a warning and says so in the returned reason, which
 the trainers record in config.json.
 PPO exists on the batched engine only.
@@ -47,8 +47,6 @@ def _fallback_reason(algo: str, net_cfg: Any, cfg: Any, teacher: bool, prev_view
         if net_cfg is None or net_cfg.encoder == "cnn":
             return (f"batched {algo.upper()} needs a frozen encoder (the trainable CNN is "
                     "not factored)")
-        if teacher and algo == "savn":
-            return "the curriculum's KL teacher for savn is not implemented on the batched engine"
         if cfg is not None and getattr(cfg.loss, "bootstrap_on_truncation", False) and \
                 algo == "savn":
             return "SAVN's truncation bootstrap is implemented on the async engine only"

@@ -25,6 +25,7 @@ slots cost forward passes: a round lasts as long as its longest episode.
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -35,7 +36,8 @@ from torch.nn import functional as F
 from geonav.errors import ConfigError
 from geonav.policy.batched.core import Adapted, Recorder, factored_step, sample_actions
 from geonav.policy.batched.isar import gram_matrix, values_dtype
-from geonav.policy.batched.trainer import BatchedTrainer, loss_stats, refuse_teacher
+from geonav.policy.batched.teacher import BatchedTeacher, kl_terms
+from geonav.policy.batched.trainer import BatchedTrainer, loss_stats
 from geonav.policy.isar import gradient_path, teacher_record
 from geonav.policy.losses import LossTerms, gae_returns, policy_value_terms
 from geonav.policy.meta_config import SAVNConfig
@@ -52,7 +54,7 @@ class BatchedSAVNTrainer(BatchedTrainer):
 
     def __init__(self, env_factory: Any, net_cfg: Any = None, cfg: SAVNConfig | None = None,
                  *, teacher: Any = None, prev_view: Any = None, **kwargs: Any) -> None:
-        refuse_teacher(teacher, None)
+        self.teacher_spec = teacher
         self.prev_view_spec = prev_view
         super().__init__(env_factory, net_cfg, cfg if cfg is not None else SAVNConfig(),
                          **kwargs)
@@ -60,6 +62,8 @@ class BatchedSAVNTrainer(BatchedTrainer):
     def _setup(self) -> None:
         super()._setup()
         self.gram = gram_matrix(self.table)
+        self.teacher = BatchedTeacher(self.teacher_spec, self.batch, self.device) \
+            if self.teacher_spec is not None else None
 
     def build_aux(self) -> dict[str, nn.Module]:
         return {"interaction_loss": InteractionLoss(self.cfg.k_steps, self.cfg.tcn_channels)}
@@ -68,13 +72,13 @@ class BatchedSAVNTrainer(BatchedTrainer):
         d = super().resolved_config()
         d["gradient_path"] = {**gradient_path(self.cfg), "path": "batched factored, "
                               "episode-synchronous rounds"}
-        d["teacher"] = teacher_record(None, self.prev_view_spec)
+        d["teacher"] = teacher_record(self.teacher_spec, self.prev_view_spec)
         return d
 
     def record(self, f: dict[str, Any], stats: dict[str, float]) -> dict[str, Any]:
         rec = super().record(f, stats)
         rec.update({"inner_updates": f["inner_updates"], "adaptive_updates": 1,
-                    "kl_weight": 0.0})
+                    "kl_weight": f.get("kl_weight", 0.0)})
         return rec
 
     def next_round(self) -> None:
@@ -103,12 +107,20 @@ class BatchedSAVNTrainer(BatchedTrainer):
         t = 0
         rec = Recorder(gram=self.gram)
         hs: list[torch.Tensor] = []
+        kls: list[torch.Tensor] = []
+        # the curriculum teacher's lambda of each slot's episode (numbered in slot order)
+        lam = torch.tensor([self.teacher.weight(self.episodes_done + 1 + s) for s in range(b)],
+                           dtype=dtype, device=dev) if self.teacher is not None else None
         while alive.any():
             vi, ti = self.slot_indices()
+            tlogp = self.teacher.step(vi, ti, torch.full((b,), t == 0, device=dev)) \
+                if self.teacher is not None else None
             logit, value, state = factored_step(params, e, self.table[vi], self.table[ti],
                                                 state, adapted, rec, None, vi, ti,
                                                 self.prev_features(vi))
             hs.append(state[0])
+            if tlogp is not None and lam is not None:  # lambda KL(pi_T || pi_theta), (B,)
+                kls.append(kl_terms(tlogp[None].to(dtype), logit[None])[0] * lam)
             a = sample_actions(logit, self.rng).to(dev)
             res = venv.step(a.cpu().numpy(), autoreset=False)
             logits.append(logit)
@@ -120,6 +132,7 @@ class BatchedSAVNTrainer(BatchedTrainer):
             for f in res.final:
                 if alive[f["slot"]]:
                     f["inner_updates"] = int(inner[f["slot"]])
+                    f["kl_weight"] = float(lam[f["slot"]]) if lam is not None else 0.0
                     finals.append(f)
             alive &= ~res.done
             t += 1
@@ -129,6 +142,8 @@ class BatchedSAVNTrainer(BatchedTrainer):
                     seg_h = torch.stack(hs[-cfg.k_steps:], 1)                    # (B, k, H)
                     seg_p = F.softmax(torch.stack(logits[-cfg.k_steps:], 1), -1)
                     l_int = self.interaction_loss(torch.cat([seg_h, seg_p], -1))
+                    if kls:
+                        l_int = l_int + torch.stack(kls[-cfg.k_steps:]).sum(0)
                     w = torch.from_numpy(can).to(dev, dtype)
                     adapted = rec.inner_factors((l_int * w).sum(), adapted, cfg.inner_lr,
                                                 create_graph=cfg.second_order, weights=w)
@@ -145,6 +160,8 @@ class BatchedSAVNTrainer(BatchedTrainer):
                                np.zeros(b), ends_np, lc.gamma, lc.tau)
         terms = policy_value_terms(lg, vs, acts, torch.from_numpy(ret).to(dev, dtype),
                                    torch.from_numpy(adv).to(dev, dtype), lc, weights=mask)
+        if kls:
+            terms = replace(terms, total=terms.total + (torch.stack(kls) * mask).sum())
         bf = float(b)
         self.step_optimizer(terms.total / bf)
         self.fresh = torch.ones(b, dtype=torch.bool, device=dev)

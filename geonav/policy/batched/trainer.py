@@ -100,14 +100,6 @@ class RolloutBatch:
     """(T, B) V(s_t) while acting (PPO)."""
 
 
-def refuse_teacher(teacher: Any, prev_view: Any) -> None:
-    """Refuse the curriculum's teacher options a batched learner does not implement."""
-    if teacher is not None or prev_view is not None:
-        raise ConfigError("this curriculum teacher (KL prior or previous-view input) is not "
-                          "implemented for this learner on the batched engine; use engine = "
-                          "'async'")
-
-
 class BatchedTrainer(A3CTrainer):
     """The batched engine (see the module docstring); arguments as :class:`A3CTrainer`,
     plus ``batch`` (B, slots stepped together) and ``device`` ('cpu' or 'cuda').
