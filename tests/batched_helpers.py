@@ -40,3 +40,16 @@ def assert_grads_close(names, ref, got, atol, rtol):
     assert len(got) == len(ref) == len(names)
     for n, a, b in zip(names, ref, got, strict=True):
         torch.testing.assert_close(b, a, atol=atol, rtol=rtol, msg=n)
+
+
+def kl_teacher_spec(net, out_dir, budget=40):
+    """A curriculum KL teacher: a tiny A3C policy trained at 90 m on the tiny lattice."""
+    from geonav.policy.a3c import A3CTrainer
+    from geonav.policy.config import A3CConfig
+    from geonav.policy.teacher import TeacherSpec
+    from geonav.policy.testing import tiny_env_factory
+
+    at_90 = tiny_env_factory(cells=5, max_steps=12, alt_m=90.0)
+    run = A3CTrainer(at_90, net, A3CConfig(episodes=3, workers=0, seed=1), out_dir=out_dir,
+                     tensorboard=False).train()
+    return TeacherSpec(str(run.checkpoint), at_90, budget=budget)

@@ -3,7 +3,13 @@
 from dataclasses import replace
 
 import pytest
-from batched_helpers import assert_grads_close, first_update_grads, greedy_sr, random_sr
+from batched_helpers import (
+    assert_grads_close,
+    first_update_grads,
+    greedy_sr,
+    kl_teacher_spec,
+    random_sr,
+)
 
 from geonav.errors import ConfigError
 from geonav.policy.batched.isar import BatchedISARTrainer
@@ -55,17 +61,9 @@ def test_learns_tiny_task():
 
 def test_b1_first_window_with_kl_teacher_equals_reference(tmp_path):
     """The curriculum's KL prior (option A): teacher at another altitude of the lattice."""
-    from geonav.policy.a3c import A3CTrainer
-    from geonav.policy.config import A3CConfig
-    from geonav.policy.teacher import TeacherSpec
-
     net = tiny_net("random", 32, size=16)
-    teacher_run = A3CTrainer(tiny_env_factory(cells=5, max_steps=12, alt_m=90.0), net,
-                             A3CConfig(episodes=3, workers=0, seed=1), out_dir=tmp_path,
-                             tensorboard=False).train()
     factory = tiny_env_factory(cells=5, max_steps=12)
-    spec = TeacherSpec(str(teacher_run.checkpoint),
-                       tiny_env_factory(cells=5, max_steps=12, alt_m=90.0), budget=40)
+    spec = kl_teacher_spec(net, tmp_path)
     cfg = ISARConfig(episodes=1, workers=0, n_steps=2, k_segments=3, alpha=0.5, seed=4)
     ref = ISARTrainer(factory, net, cfg, teacher=spec, tensorboard=False)
     bat = BatchedISARTrainer(factory, net, cfg, teacher=spec, batch=1, tensorboard=False)

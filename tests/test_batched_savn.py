@@ -1,7 +1,13 @@
 """Batched SAVN: B = 1 equals the reference worker's episode meta-gradient; it learns."""
 
 import pytest
-from batched_helpers import assert_grads_close, first_update_grads, greedy_sr, random_sr
+from batched_helpers import (
+    assert_grads_close,
+    first_update_grads,
+    greedy_sr,
+    kl_teacher_spec,
+    random_sr,
+)
 
 from geonav.policy.batched.savn import BatchedSAVNTrainer
 from geonav.policy.meta_config import SAVNConfig
@@ -40,16 +46,8 @@ def test_learns_tiny_task():
 
 def test_b1_with_kl_teacher_equals_reference(tmp_path):
     """The curriculum's KL prior in the learned loss and the meta-loss (option A)."""
-    from geonav.policy.a3c import A3CTrainer
-    from geonav.policy.config import A3CConfig
-    from geonav.policy.teacher import TeacherSpec
-
     net = tiny_net("random", 32, size=16)
-    teacher = A3CTrainer(tiny_env_factory(cells=5, max_steps=12, alt_m=90.0), net,
-                         A3CConfig(episodes=3, workers=0, seed=1), out_dir=tmp_path,
-                         tensorboard=False).train()
-    spec = TeacherSpec(str(teacher.checkpoint),
-                       tiny_env_factory(cells=5, max_steps=12, alt_m=90.0), budget=40)
+    spec = kl_teacher_spec(net, tmp_path)
     factory = tiny_env_factory(cells=5, max_steps=12)
     cfg = SAVNConfig(episodes=1, workers=0, k_steps=3, inner_steps=2, inner_lr=0.5, seed=4)
     ref = SAVNTrainer(factory, net, cfg, teacher=spec, tensorboard=False)
