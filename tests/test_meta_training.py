@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from geonav.camera import Camera
+from geonav.convergence import ConvergenceCriterion
 from geonav.env import GeoNavEnv
-from geonav.experiments.convergence import ConvergenceCriterion
 from geonav.policy.callbacks import Callback
 from geonav.policy.encoders import build_frozen_encoder
 from geonav.policy.evaluation import RandomAgent, eval_starts, evaluate

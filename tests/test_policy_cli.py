@@ -47,14 +47,21 @@ def test_train_resume_and_eval(scene_files, tmp_path, capsys):
 
     out = tmp_path / "eval.json"
     args = _parse(["eval", str(run / "checkpoints/final.pt"), "--scene", str(scene),
-                   "--tasks", str(tasks), "--episodes", "4", "--greedy", "--json", str(out),
+                   "--tasks", str(tasks), "--max-starts", "4", "--json", str(out),
                    "--no-progress"])
     capsys.readouterr()
     assert args.handler(args) == 0
-    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    assert summary["mode"] == "greedy" and summary["episodes"] == 4
-    assert 0.0 <= summary["success_rate"] <= 1.0
-    assert len(json.loads(out.read_text())["per_episode"]) == 4
+    captured = capsys.readouterr()
+    summary = json.loads(captured.out.strip().splitlines()[-1])
+    assert summary["starts"] == 4
+    for mode in ("greedy", "sampled"):
+        assert 0.0 <= summary[mode]["sr"] <= 1.0 and 0.0 <= summary[mode]["spl"] <= 1.0
+    assert 0.0 < summary["random_walk_sr"] < 1.0 and "random walk" in captured.err
+    per = json.loads(out.read_text())["per_episode"]
+    assert len(per["greedy"]) == 4 and len(per["sampled"]) == 4
+    # every training run ends with a greedy + sampled evaluation row in eval.csv
+    rows = (run / "eval.csv").read_text().splitlines()
+    assert rows[0].startswith("episode,env_steps") and rows[-1].startswith("5,")
 
 
 def test_bad_input_is_one_clear_error(scene_files, tmp_path, capsys):

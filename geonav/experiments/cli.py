@@ -5,6 +5,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from geonav.cliutil import nonneg_int, positive_int
+
+
+def _seeds(text: str) -> tuple[int, ...]:
+    return tuple(nonneg_int(s.strip()) for s in text.split(","))
+
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     exp = sub.add_parser("experiment", help="run transfer experiments from a TOML config")
@@ -14,8 +20,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("config", help="experiment TOML (see configs/)")
     p.add_argument("--out", default="runs", help="parent folder of the run (default runs/)")
     p.add_argument("--only", action="append", help="run only this part (repeatable)")
-    p.add_argument("--jobs", type=int, default=2, help="units run in parallel (default 2)")
-    p.add_argument("--seeds", help="override the seeds, e.g. 0,1,2")
+    p.add_argument("--jobs", type=positive_int, default=2, help="units run in parallel (default 2)")
+    p.add_argument("--seeds", type=_seeds, help="override the seeds, e.g. 0,1,2")
     p.add_argument("--name", help="override the experiment name (run folder)")
     p.add_argument("--fly", choices=["auto", "yes", "no"], default="auto",
                    help="fly the result in the MAVLink emulator when the config has [flight]")
@@ -30,7 +36,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def _overrides(args: argparse.Namespace) -> dict:
     o: dict = {}
     if getattr(args, "seeds", None):
-        o["seeds"] = [int(s) for s in args.seeds.split(",")]
+        o["seeds"] = list(args.seeds)
     if getattr(args, "name", None):
         o["name"] = args.name
     return o
@@ -39,7 +45,7 @@ def _overrides(args: argparse.Namespace) -> dict:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from geonav.cli import progress_bar
+    from geonav.cliutil import progress_bar
     from geonav.experiments.config import load_config
     from geonav.experiments.runner import UnitEvent, run_experiment
 

@@ -54,8 +54,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from geonav.convergence import ConvergenceCriterion
 from geonav.errors import ConfigError
-from geonav.experiments.convergence import ConvergenceCriterion
 
 STAGE_MODES = ("train", "meta-train", "curriculum")
 ALGOS = ("a3c", "savn", "isar", "ppo")
@@ -240,6 +240,18 @@ def parse_config(data: dict[str, Any], source: str = "") -> ExperimentConfig:
     unknown = sorted(set(data) - known)
     if unknown:
         raise ConfigError(f"{source}: unknown top-level key(s) {unknown}; known: {sorted(known)}")
+    for key in ("convergence", "scenes", "tasks", "stages", "flight"):
+        if key in data and not isinstance(data[key], dict):
+            raise ConfigError(f"{source}: [{key}] must be a table, got "
+                              f"{type(data[key]).__name__} {data[key]!r}")
+    for key in ("scenes", "tasks", "stages"):
+        for name, value in data.get(key, {}).items():
+            if not isinstance(value, dict):
+                raise ConfigError(f"{source}: [{key}.{name}] must be a table, got "
+                                  f"{type(value).__name__} {value!r}")
+    compare = data.get("compare", [])
+    if not isinstance(compare, list) or not all(isinstance(c, dict) for c in compare):
+        raise ConfigError(f"{source}: compare must be [[compare]] tables")
     try:
         conv = ConvergenceCriterion(**data.get("convergence", {}))
     except (TypeError, ValueError) as err:
@@ -306,6 +318,29 @@ def _check(cfg: ExperimentConfig) -> None:
         missing = [m for m in c.methods if m not in cfg.stages]
         if missing:
             raise ConfigError(f"[[compare]] {c.name!r}: methods {missing} are not stages")
+    check_noise(cfg)
+
+
+def check_noise(cfg: ExperimentConfig, random_walk_sr: dict[str, float] | None = None) -> None:
+    """Refuse a convergence rule that a policy which is not improving could meet (issue 10,
+    ALGORITHMS.md (f)): (a) for each compared stage's budget, by seeded simulation of a
+    stationary success stream at p = hold; (b) with ``random_walk_sr`` (task-set key ->
+    exact random-walk SR), thresholds below chance plus half the gap to 1."""
+    from geonav.convergence import noise_check
+
+    compared = {m for c in cfg.compare for m in c.methods}
+    seen: set[tuple[int, float | None]] = set()
+    for key in sorted(compared):
+        st = cfg.stages[key]
+        rw = None if random_walk_sr is None else random_walk_sr.get(st.tasks)
+        if (st.episodes, rw) in seen:
+            continue
+        seen.add((st.episodes, rw))
+        reasons = noise_check(cfg.convergence, st.episodes, rw)
+        if reasons:
+            raise ConfigError(f"[convergence] cannot tell learning from noise for stage "
+                              f"{key!r} (tasks {st.tasks!r}, budget {st.episodes}): "
+                              + "; ".join(reasons))
 
 
 def load_config(path: str | Path, overrides: dict[str, Any] | None = None) -> ExperimentConfig:

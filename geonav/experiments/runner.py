@@ -91,9 +91,31 @@ def prepare_inputs(cfg: ExperimentConfig, root: Path,
             continue
         out = root / "tasks" / f"{key}.json"
         if not out.exists():
-            make_taskset(tspec, scenes[tspec.scene]).save(out)
+            from geonav.difficulty import taskset_difficulty
+            from geonav.scene import Scene
+
+            ts = make_taskset(tspec, scenes[tspec.scene])
+            ts.meta["difficulty"] = taskset_difficulty(ts, Scene.open(scenes[tspec.scene]))
+            ts.save(out)
         tasks[key] = str(out.resolve())
+    from geonav.experiments.config import check_noise
+
+    check_noise(cfg, {k: task_difficulty(scenes[cfg.tasks[k].scene], p)["random_walk_sr"]
+                      for k, p in tasks.items()})
     return scenes, tasks
+
+
+def task_difficulty(scene_path: str, tasks_path: str) -> dict[str, Any]:
+    """The task set's chance figures (geonav.difficulty), computed once and kept in its
+    JSON ``meta["difficulty"]`` (user-supplied task files are left untouched)."""
+    from geonav.difficulty import taskset_difficulty
+    from geonav.scene import Scene
+    from geonav.tasks import TaskSet
+
+    ts = TaskSet.load(tasks_path)
+    if isinstance(ts.meta.get("difficulty"), dict):
+        return ts.meta["difficulty"]
+    return taskset_difficulty(ts, Scene.open(scene_path))
 
 
 def make_taskset(spec: TaskSpec, scene_path: str):
@@ -252,7 +274,7 @@ def _payload(cfg: ExperimentConfig, root: Path, u: Unit, scenes: dict[str, str],
         scene=scenes[tspec.scene], tasks=tasks[stage.tasks], init_checkpoint=init_ckpt,
         out_dir=str(unit_dir(root, u)), convergence=dict(
             window=cfg.convergence.window, threshold=cfg.convergence.threshold,
-            hold=cfg.convergence.hold),
+            hold=cfg.convergence.hold, eval_threshold=cfg.convergence.eval_threshold),
         eval_starts=cfg.eval_starts,
     )
 

@@ -67,28 +67,41 @@ class ProgressFile:
 
 
 class ConvergenceStop:
-    """Stops a training stage once the convergence criterion has been confirmed
-    (e* found and held for W more episodes), so budgets are upper bounds."""
+    """Stops a training stage once both convergence rules are confirmed: the training-SR
+    e* (found and held for W more episodes) and the evaluation e* (two consecutive greedy
+    evaluations over all starts at ``eval_threshold``), so budgets are upper bounds and
+    both e* are known when it stops."""
 
-    def __init__(self, criterion: Any, successes: list[bool] | None = None) -> None:
+    def __init__(self, criterion: Any, successes: list[bool] | None = None,
+                 evals: list[tuple[int, float]] | None = None) -> None:
         self.criterion = criterion
         self.successes = list(successes or [])
+        self.evals = list(evals or [])
         self.converged_at: int | None = None
+        self.eval_converged_at: int | None = None
 
     def on_train_start(self, info: dict[str, Any]) -> None:
         pass
 
+    def on_eval(self, row: dict[str, Any]) -> None:
+        from geonav.convergence import eval_convergence
+
+        self.evals.append((int(row["episode"]), float(row["greedy_sr"])))
+        ep, sr = zip(*self.evals, strict=True)
+        self.eval_converged_at = eval_convergence(ep, sr, 0,
+                                                  self.criterion.eval_threshold).episodes
+
     def on_episode(self, record: dict[str, Any]) -> bool | None:
-        from geonav.experiments.convergence import episodes_to_convergence
+        from geonav.convergence import episodes_to_convergence
 
         self.successes.append(bool(record.get("success")))
         w = self.criterion.window
         # check once per W/10 episodes: cheap and at most W/10 episodes late
-        if len(self.successes) % max(1, w // 10) == 0:
-            conv = episodes_to_convergence(self.successes, self.criterion)
-            if conv.episodes is not None:
-                self.converged_at = conv.episodes
-                return False
+        if self.converged_at is None and len(self.successes) % max(1, w // 10) == 0:
+            self.converged_at = episodes_to_convergence(self.successes,
+                                                        self.criterion).episodes
+        if self.converged_at is not None and self.eval_converged_at is not None:
+            return False
         return None
 
     def on_checkpoint(self, path: Any, episodes: int) -> None:
@@ -201,7 +214,7 @@ def _curriculum(p: dict[str, Any], env_factory: Any, callbacks: list[Any],
                 resume: str | None) -> tuple[Any, int, str]:
     """The stages resume themselves from ``out_dir`` (curriculum.json and each stage's
     checkpoints/latest.pt); ``episodes`` is the budget of each stage."""
-    from geonav.experiments.convergence import ConvergenceCriterion
+    from geonav.convergence import ConvergenceCriterion
     from geonav.policy.config import from_dict
     from geonav.policy.curriculum import run_curriculum
     from geonav.policy.meta_config import CurriculumConfig
@@ -244,7 +257,7 @@ def execute_stage(p: dict[str, Any]) -> dict[str, Any]:
     resume = str(latest) if latest.exists() else None
     if resume is None and (out / "metrics.csv").exists():
         # killed before its first checkpoint: start the unit again from scratch
-        for name in ("metrics.csv", "config.json", "progress.json"):
+        for name in ("metrics.csv", "eval.csv", "config.json", "progress.json"):
             (out / name).unlink(missing_ok=True)
     if resume is not None:
         truncate_metrics(out / "metrics.csv", resume)
@@ -252,27 +265,33 @@ def execute_stage(p: dict[str, Any]) -> dict[str, Any]:
     callbacks: list[Any] = [ProgressFile(out / "progress.json")]
     p = dict(p, options=dict(p["options"]))
     if p["options"].pop("stop_at_convergence", False) and p["mode"] != "curriculum":
-        from geonav.experiments.convergence import ConvergenceCriterion
+        from geonav.convergence import ConvergenceCriterion
         from geonav.policy.callbacks import read_metrics
 
         before = [bool(r["success"]) for r in read_metrics(out / "metrics.csv")] \
             if resume is not None and (out / "metrics.csv").exists() else []
-        callbacks.append(ConvergenceStop(ConvergenceCriterion(**p["convergence"]), before))
+        evals_before = [(int(r["episode"]), float(r["greedy_sr"]))
+                        for r in read_metrics(out / "eval.csv")] \
+            if resume is not None and (out / "eval.csv").exists() else []
+        crit = ConvergenceCriterion(**p["convergence"])
+        callbacks.append(ConvergenceStop(crit, before, evals_before))
     model, episodes, checkpoint = TRAINERS[key](p, env_factory, callbacks, resume)
     metrics, offset, eval_factory = out / "metrics.csv", 0, env_factory
+    evals = out / "eval.csv"
     if p["mode"] == "curriculum":
         # Convergence is judged on the last (lowest) stage; the earlier stages of the
         # unit count as episodes spent before it.
         stages = json.loads((out / "curriculum.json").read_text())["stages"]
         last = stages[-1]
         metrics = out / f"stage_{len(stages) - 1}_{float(last['alt_m']):g}m" / "metrics.csv"
+        evals = metrics.with_name("eval.csv")
         offset = sum(int(s["episodes"]) for s in stages[:-1])
         eval_factory = EnvFactory(p["scene"], p["tasks"], alt_m=float(last["alt_m"]))
     evaluation, trajectories = evaluate_unit(model, checkpoint, eval_factory, p)
     return dict(stage=p["stage"], seed=p["seed"], mode=p["mode"], algo=p["algo"],
                 episodes=int(episodes), episodes_before_metrics=offset, checkpoint=checkpoint,
-                metrics=str(metrics), scene=p["scene"], tasks=p["tasks"], eval=evaluation,
-                trajectories=trajectories)
+                metrics=str(metrics), evals=str(evals), scene=p["scene"], tasks=p["tasks"],
+                eval=evaluation, trajectories=trajectories)
 
 
 def truncate_metrics(metrics_csv: Path, checkpoint: str) -> None:
@@ -296,20 +315,34 @@ def truncate_metrics(metrics_csv: Path, checkpoint: str) -> None:
 
 
 def evaluate_unit(model: Any, checkpoint: str, env_factory: Any, p: dict[str, Any]
-                  ) -> tuple[dict[str, float], list[dict[str, Any]]]:
-    """Held-out evaluation (seeded starts, sampled actions, ALGORITHMS.md (f)) and two
-    greedy example trajectories per unit."""
+                  ) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """Final evaluation of a unit (ALGORITHMS.md (f)): greedy and sampled from every start
+    cell (a held-out seeded sample above ``eval_starts``), the task's exact chance figures,
+    the zero-shot figures of the policy the unit started from, and two greedy example
+    trajectories."""
+    from geonav.difficulty import env_difficulty
     from geonav.policy.agent import Agent
     from geonav.policy.checkpoint import load_checkpoint
-    from geonav.policy.evaluation import evaluate
+    from geonav.policy.evaluation import evaluate_both
 
     env = env_factory()
     frozen = load_checkpoint(checkpoint).build_encoder()
     n_tasks = len(env.unwrapped.tasks)
-    per_task = max(1, int(p.get("eval_starts", 100)) // n_tasks)
-    # held-out: a seed no training worker uses
-    res = evaluate(model, env, frozen=frozen, episodes_per_task=per_task,
-                   seed=10_000 + int(p["seed"]), greedy=False)
+    limit = int(p.get("eval_starts", 100))
+    seed = 10_000 + int(p["seed"])  # held out: a seed no training worker uses
+    res = evaluate_both(model, env, frozen=frozen, max_starts=limit, seed=seed)
+    chance = env_difficulty(env)
+    evaluation: dict[str, Any] = {
+        "starts": res["starts"], **res["row"],
+        "random_walk_sr": chance["random_walk_sr"], "blind_sr": chance["blind_sr"],
+        "mean_shortest_path": chance["mean_shortest_path"],
+        # the keys of geonav <= 0.1 (sampled actions)
+        "success_rate": res["row"]["sampled_sr"], "spl": res["row"]["sampled_spl"]}
+    if p.get("init_checkpoint"):
+        init = load_checkpoint(p["init_checkpoint"])
+        zs = evaluate_both(init.build_model(), env, frozen=init.build_encoder(),
+                           max_starts=limit, seed=seed)
+        evaluation["zero_shot"] = zs["row"]
     trajectories = []
     agent = Agent(model.eval(), frozen, greedy=True, seed=0)
     for i in range(min(2, n_tasks * 2)):
@@ -322,4 +355,4 @@ def evaluate_unit(model: Any, checkpoint: str, env_factory: Any, p: dict[str, An
             done = terminated or truncated
         trajectories.append(dict(task_index=i % n_tasks, cells=cells,
                                  success=bool(info["success"])))
-    return res.summary(), trajectories
+    return evaluation, trajectories

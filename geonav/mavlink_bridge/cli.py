@@ -10,6 +10,7 @@ import argparse
 import threading
 from typing import Any
 
+from geonav.cliutil import finite_float, nonneg_float, positive_float, positive_int
 from geonav.errors import ConfigError
 
 
@@ -22,13 +23,17 @@ def _cell(text: str) -> tuple[int, int]:
 
 
 def _lonlat(text: str) -> Any:
+    from geonav.errors import GeoError
     from geonav.geo import LonLat
 
+    parts = text.split(",")
+    if len(parts) not in (2, 3):
+        raise argparse.ArgumentTypeError(f"home {text!r}: give LAT,LON[,ALT]")
+    lat, lon, *alt = (finite_float(v) for v in parts)
     try:
-        lat, lon, *alt = (float(v) for v in text.split(","))
-    except ValueError as err:
-        raise argparse.ArgumentTypeError(f"home {text!r}: give LAT,LON[,ALT]") from err
-    return LonLat(lon, lat, alt[0] if alt else 0.0)
+        return LonLat(lon, lat, alt[0] if alt else 0.0)
+    except GeoError as err:
+        raise argparse.ArgumentTypeError(f"home {text!r}: {err}") from None
 
 
 def add_parser(subparsers: Any) -> None:
@@ -49,14 +54,15 @@ def add_parser(subparsers: Any) -> None:
         default="px4",
         help="emulator flavour for --dry-run",
     )
-    p.add_argument("--max-steps", type=int, default=70)
+    p.add_argument("--max-steps", type=positive_int, default=70)
     p.add_argument(
         "--max-distance",
-        type=float,
+        type=positive_float,
         default=float("inf"),
         help="geofence radius around home, metres",
     )
-    p.add_argument("--fence-margin", type=float, default=0.0, help="shrink scene bounds, metres")
+    p.add_argument("--fence-margin", type=nonneg_float, default=0.0,
+                   help="shrink scene bounds, metres")
     p.add_argument(
         "--set-origin",
         action="store_true",
@@ -81,8 +87,10 @@ def _emulator_args(e: argparse.ArgumentParser) -> None:
         default="udp:127.0.0.1:14580",
         help="udp:HOST:PORT (reply to senders), tcp:HOST:PORT, or udpout:HOST:PORT",
     )
-    e.add_argument("--time-scale", type=float, default=1.0, help="emulated seconds per second")
-    e.add_argument("--seconds", type=float, default=0.0, help="stop after this long (0: Ctrl-C)")
+    e.add_argument("--time-scale", type=positive_float, default=1.0,
+                   help="emulated seconds per second")
+    e.add_argument("--seconds", type=nonneg_float, default=0.0,
+                   help="stop after this long (0: Ctrl-C)")
     e.set_defaults(handler=run_emulator)
 
 
@@ -93,7 +101,7 @@ def run_fly(args: argparse.Namespace) -> int:
     if not args.dry_run and not args.connect:
         raise ConfigError("give --connect URL, or --dry-run to fly against the emulator")
     try:
-        from geonav.cli import progress_bar
+        from geonav.cliutil import progress_bar
 
         progress = progress_bar("fly")
     except ImportError:

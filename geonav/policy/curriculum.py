@@ -4,7 +4,7 @@ Stages at ``levels_m`` (75, 45, 15 m by default) on the same lattice (the task s
 tasks ``.with_alt``), each starting from the previous stage's final policy (the first
 from ``init``, weights only) and trained with the base algorithm (ISAR by default) with
 T_max = 120. A stage ends when the convergence criterion of ALGORITHMS.md (f) holds on
-its training episodes (:func:`geonav.experiments.convergence.episodes_to_convergence`)
+its training episodes (:func:`geonav.convergence.episodes_to_convergence`)
 or when its budget is spent. With the KL teacher (option A, default) a stage's
 interaction losses gain lambda * KL(pi_T || pi_theta), pi_T being the previous stage's
 frozen final policy fed the render at the same cell at the previous altitude, lambda
@@ -49,7 +49,7 @@ class ConvergenceStop(Callback):
         self.converged_at: int | None = None
 
     def on_episode(self, record: dict[str, Any]) -> bool:
-        from geonav.experiments.convergence import episodes_to_convergence
+        from geonav.convergence import episodes_to_convergence
 
         self.successes.append(bool(record["success"]))
         if len(self.successes) % self.check_every:
@@ -133,13 +133,13 @@ def run_curriculum(env_factory: Any, init: str | None, algo: str, base_cfg: A3CC
         cfg: levels, stage budget, T_max, teacher.
         out_dir: run folder (see the module docstring); an existing ``curriculum.json``
             is resumed.
-        criterion: a :class:`geonav.experiments.convergence.ConvergenceCriterion`
+        criterion: a :class:`geonav.convergence.ConvergenceCriterion`
             (default: its defaults).
         engine, batch, device: the trainer engine of every stage
             (:func:`geonav.policy.engine.build_trainer`; a stage the batched engine does
             not implement, e.g. one with the KL teacher, runs on the async engine).
     """
-    from geonav.experiments.convergence import ConvergenceCriterion
+    from geonav.convergence import ConvergenceCriterion
     from geonav.policy.checkpoint import check_compatible, load_checkpoint
     from geonav.policy.engine import build_trainer
     from geonav.policy.teacher import PrevViewSpec, TeacherSpec
