@@ -236,6 +236,7 @@ class LatticeVecEnv:
                 "distance_m": int(tm.dist_to_target[cell]) * tm.task.step_m,
                 "shortest_path": int(tm.dist_to_target[tuple(self.start[slot])]),
                 "collided": bool(collided), "success": cell == tm.task.target_cell,
+                "is_success": cell == tm.task.target_cell,
                 "task": tm.task.name, "task_index": int(self.task[slot]),
                 "alt_m": tm.task.alt_m, "steps": int(self.steps[slot])}
 

@@ -23,7 +23,7 @@ from geonav.policy.losses import actor_critic_loss, gae_returns, policy_value_te
 from geonav.policy.model import ActorCritic
 from geonav.policy.testing import tiny_net
 
-TOL = 1e-10
+TOL = 1e-10  # absolute and relative
 LOSS = LossConfig()
 
 
@@ -80,9 +80,9 @@ def test_sequence_forward_equals_module(setup, b):
                 st = model.initial_state(1)
                 st = tuple(x.double() for x in st)
             lg, v, st = _ref_slot(model, params, table, views[t0:t1, s], targets[t0, s], st)
-            torch.testing.assert_close(logits[t0:t1, s], lg, atol=TOL, rtol=0)
-            torch.testing.assert_close(values[t0:t1, s], v, atol=TOL, rtol=0)
-        torch.testing.assert_close(end[0][s], st[0][0], atol=TOL, rtol=0)
+            torch.testing.assert_close(logits[t0:t1, s], lg, atol=TOL, rtol=TOL)
+            torch.testing.assert_close(values[t0:t1, s], v, atol=TOL, rtol=TOL)
+        torch.testing.assert_close(end[0][s], st[0][0], atol=TOL, rtol=TOL)
     # the gradient flows into the parameters through the once-per-view image part
     logits.sum().backward()
     assert model.obs_embed.weight.grad is not None and model.obs_embed.weight.grad.abs().sum() > 0
@@ -183,8 +183,8 @@ def test_inner_updates_equal_functional_call(setup, b, gram):
                 continue
             dw, db = adapted[key].dense(table)
             for s in range(b):
-                torch.testing.assert_close(phi[wn] + dw[s], thetas[s][k][wn], atol=TOL, rtol=0)
-                torch.testing.assert_close(phi[bn] + db[s], thetas[s][k][bn], atol=TOL, rtol=0)
+                torch.testing.assert_close(phi[wn] + dw[s], thetas[s][k][wn], atol=TOL, rtol=TOL)
+                torch.testing.assert_close(phi[bn] + db[s], thetas[s][k][bn], atol=TOL, rtol=TOL)
 
 
 @pytest.mark.parametrize("b,second_order,gram", [(1, True, False), (5, True, False),
@@ -201,7 +201,7 @@ def test_window_gradient_equals_functional_call(setup, b, second_order, gram):
     ref_loss, _ = _ref_window(model, table, data, 2, 3, 0.3, second_order)
     ref = torch.autograd.grad(ref_loss, phi)
     for a, r in zip(got, ref, strict=True):
-        torch.testing.assert_close(a, r, atol=TOL, rtol=0)
+        torch.testing.assert_close(a, r, atol=TOL, rtol=TOL)
     if second_order:  # the second-order terms matter at this alpha: first order differs
         fo = torch.autograd.grad(_batched_window(model, table, data, 2, 3, 0.3, False), phi)
         assert max(float((x - y).abs().max()) for x, y in zip(fo, got, strict=True)) > 1e-6
@@ -285,7 +285,7 @@ def test_savn_episode_meta_gradient_equals_functional_call(setup, b):
                                                   rewards[:, s], 0.0, LOSS).total
     ref = torch.autograd.grad(ref_total, leaves)
     for a, r in zip(got, ref, strict=True):
-        torch.testing.assert_close(a, r, atol=TOL, rtol=0)
+        torch.testing.assert_close(a, r, atol=TOL, rtol=TOL)
     assert float(got[-1].abs().sum()) > 0  # Lambda gets its second-order gradient
 
 
@@ -326,10 +326,10 @@ def test_prev_slot_forward_equals_module(prev_setup, with_views):
         if with_views:
             args = (*args, prev[views[:, s]].unsqueeze(1))
         lg, v, _ = torch.func.functional_call(model, params, args, strict=True)
-        torch.testing.assert_close(logits[:, s], lg[:, 0], atol=TOL, rtol=0)
-        torch.testing.assert_close(values[:, s], v[:, 0], atol=TOL, rtol=0)
+        torch.testing.assert_close(logits[:, s], lg[:, 0], atol=TOL, rtol=TOL)
+        torch.testing.assert_close(values[:, s], v[:, 0], atol=TOL, rtol=TOL)
         if lf is not None:
-            torch.testing.assert_close(lf[:, s], lg[:, 0], atol=TOL, rtol=0)
+            torch.testing.assert_close(lf[:, s], lg[:, 0], atol=TOL, rtol=TOL)
 
 
 def test_prev_slot_window_gradient_equals_functional_call(prev_setup):
@@ -379,4 +379,4 @@ def test_prev_slot_window_gradient_equals_functional_call(prev_setup):
                 theta = sgd_step(theta, loss, alpha, create_graph=True)
     ref = torch.autograd.grad(ref_total, list(model.parameters()))
     for a, r in zip(got, ref, strict=True):
-        torch.testing.assert_close(a, r, atol=TOL, rtol=0)
+        torch.testing.assert_close(a, r, atol=TOL, rtol=TOL)
