@@ -75,7 +75,9 @@ def configs(kind: str):
     from geonav.policy.meta_config import ISARConfig, SAVNConfig
 
     frozen = NetConfig(encoder="random", obs_size_px=84)
-    common = dict(episodes=10**7, workers=0, seed=0, checkpoint_every=0)
+    # eval_every = 0: training throughput only (the periodic evaluation of every start is
+    # the reference per-step evaluator for both engines, at the same episode interval)
+    common = dict(episodes=10**7, workers=0, seed=0, checkpoint_every=0, eval_every=0)
     return {
         "a3c": ("a3c", frozen, A3CConfig(**common), 70),
         "a3c-cnn": ("a3c", replace(frozen, encoder="cnn"), A3CConfig(**common), 70),
@@ -129,7 +131,7 @@ def run_batched(kind: str, batch: int, seconds: float) -> tuple[float, float] | 
     if choice.engine != "batched":
         return None
     if algo == "ppo":
-        cfg = PPOConfig(episodes=10**7, seed=0, checkpoint_every=0)
+        cfg = PPOConfig(episodes=10**7, seed=0, checkpoint_every=0, eval_every=0)
     clock = Clock(max(3, batch), seconds)
     t = choice.cls(env_factory(ms), net, cfg, batch=batch, callbacks=[clock],
                    keep_records=False, tensorboard=False)

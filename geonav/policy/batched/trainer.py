@@ -160,6 +160,20 @@ class BatchedTrainer(A3CTrainer):
                                {name: {k: v.detach().cpu() for k, v in m.state_dict().items()}
                                 for name, m in self.aux.items()} or None)
 
+    def evaluate_now(self, cbs: list[Callback], result: TrainResult) -> dict[str, Any]:
+        """The trainer's periodic evaluation (the reference per-step evaluator, at the same
+        episode interval as the async engine, so evaluation e* compare), on a CPU copy."""
+        if self.device.type == "cpu":
+            return super().evaluate_now(cbs, result)
+        import copy
+
+        live = self.model
+        self.model = copy.deepcopy(live).cpu()
+        try:
+            return super().evaluate_now(cbs, result)
+        finally:
+            self.model = live
+
     def _train_inline(self, cbs: list[Callback], result: TrainResult) -> None:
         self._train_batched(cbs, result)
 
