@@ -154,7 +154,8 @@ def test_two_stage_input_curriculum_feeds_the_previous_altitude_view(factory, tm
     res = run_curriculum(factory, None, "isar", ISARConfig(workers=0, seed=0, eval_every=0),
                          CurriculumConfig(levels_m=(75.0, 45.0), stage_episodes=2,
                                           max_steps=12, teacher="input"),
-                         out_dir=tmp_path, criterion=HARD, net_cfg=slot_net())
+                         out_dir=tmp_path, criterion=HARD, net_cfg=slot_net(),
+                         engine="async")  # instruments the async ISAR worker
     assert [(s.alt_m, s.teacher, s.prev_view_alt_m) for s in res.stages] == \
         [(75.0, None, None), (45.0, None, 75.0)]
     cut = log.index(("stage", 45.0))

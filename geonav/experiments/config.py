@@ -58,7 +58,7 @@ from geonav.convergence import ConvergenceCriterion
 from geonav.errors import ConfigError
 
 STAGE_MODES = ("train", "meta-train", "curriculum")
-ALGOS = ("a3c", "savn", "isar")
+ALGOS = ("a3c", "savn", "isar", "ppo")
 
 
 @dataclass(frozen=True)
@@ -130,7 +130,9 @@ class StageSpec:
         episodes: episode budget of the stage.
         init: a stage whose final policy this one starts from (same seed).
         workers: worker processes inside the unit (0 = single process).
-        options: algorithm options passed through (N, K, lr, encoder, ...).
+        options: algorithm options passed through (N, K, lr, encoder, ...), and the
+            trainer engine: ``engine`` ("batched", the default, or "async"), ``batch``
+            (slots of the batched engine, default 16) and ``device`` ("cpu" or "cuda").
     """
 
     name: str

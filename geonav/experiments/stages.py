@@ -122,21 +122,10 @@ def _load_init(model: Any, path: str | None, env: Any) -> None:
     model.load_state_dict(ckpt.model_state)
 
 
-@trainer("train", "a3c")
-def _train_a3c(p: dict[str, Any], env_factory: Any, callbacks: list[Any],
-               resume: str | None) -> tuple[Any, int, str]:
-    from geonav.policy.a3c import A3CTrainer
-
-    cfg, net, rest = _algo_cfg(p)
-    if rest:
-        raise ConfigError(f"stage {p.get('stage')!r}: unknown a3c option(s) {sorted(rest)}")
-    net = _init_net(p, net, resume)
-    t = A3CTrainer(env_factory, net, cfg, out_dir=p["out_dir"], resume=resume,
-                   callbacks=callbacks, tensorboard=False)
-    if resume is None:
-        _load_init(t.model, p.get("init_checkpoint"), t.env)
-    result = t.train()
-    return result.model, result.episodes, str(result.checkpoint)
+def _engine_opts(rest: dict[str, Any]) -> dict[str, Any]:
+    """Pop the trainer engine options (engine, batch, device) from a stage's options."""
+    return {"engine": rest.pop("engine", "batched"), "batch": rest.pop("batch", None),
+            "device": rest.pop("device", None)}
 
 
 def _algo_cfg(p: dict[str, Any]) -> tuple[Any, Any, dict[str, Any]]:
@@ -145,6 +134,18 @@ def _algo_cfg(p: dict[str, Any]) -> tuple[Any, Any, dict[str, Any]]:
     from geonav.policy.meta_config import BASE_CONFIGS, base_config
 
     opts = dict(p["options"])
+    if p["algo"] == "ppo":
+        from geonav.policy.batched.ppo import PPOConfig
+
+        net_opts = {k: opts.pop(k) for k in list(opts) if k in NetConfig.__dataclass_fields__}
+        if net_opts and "obs_size_px" not in net_opts:
+            from geonav.tasks import TaskSet
+
+            net_opts["obs_size_px"] = TaskSet.load(p["tasks"]).camera.size_px
+        ppo_opts = {k: opts.pop(k) for k in list(opts) if k in PPOConfig.__dataclass_fields__}
+        cfg = from_dict(PPOConfig, {**ppo_opts, "episodes": p["episodes"],
+                                    "workers": p["workers"], "seed": p["seed"]})
+        return cfg, (from_dict(NetConfig, net_opts) if net_opts else None), opts
     net_opts = {k: opts.pop(k) for k in list(opts) if k in NetConfig.__dataclass_fields__}
     if net_opts and "obs_size_px" not in net_opts:
         from geonav.tasks import TaskSet
@@ -165,19 +166,19 @@ def _init_net(p: dict[str, Any], net: Any, resume: str | None) -> Any:
     return net
 
 
-@trainer("train", "savn", "isar")
-def _train_meta_algo(p: dict[str, Any], env_factory: Any, callbacks: list[Any],
-                     resume: str | None) -> tuple[Any, int, str]:
-    from geonav.policy.isar import ISARTrainer
-    from geonav.policy.savn import SAVNTrainer
+@trainer("train", "a3c", "savn", "isar", "ppo")
+def _train_algo(p: dict[str, Any], env_factory: Any, callbacks: list[Any],
+                resume: str | None) -> tuple[Any, int, str]:
+    from geonav.policy.engine import build_trainer
 
     cfg, net, rest = _algo_cfg(p)
+    eng = _engine_opts(rest)
     if rest:
         raise ConfigError(f"stage {p.get('stage')!r}: unknown {p['algo']} option(s) "
                           f"{sorted(rest)}")
-    cls = {"savn": SAVNTrainer, "isar": ISARTrainer}[p["algo"]]
-    t = cls(env_factory, _init_net(p, net, resume), cfg, out_dir=p["out_dir"], resume=resume,
-            callbacks=callbacks, tensorboard=False)
+    t = build_trainer(p["algo"], eng["engine"], env_factory, _init_net(p, net, resume), cfg,
+                      batch=eng["batch"], device=eng["device"], out_dir=p["out_dir"],
+                      resume=resume, callbacks=callbacks, tensorboard=False)
     if resume is None:
         _load_init(t.model, p.get("init_checkpoint"), t.env)
     result = t.train()
@@ -188,19 +189,20 @@ def _train_meta_algo(p: dict[str, Any], env_factory: Any, callbacks: list[Any],
 def _meta_train(p: dict[str, Any], env_factory: Any, callbacks: list[Any],
                 resume: str | None) -> tuple[Any, int, str]:
     from geonav.policy.config import from_dict
-    from geonav.policy.meta import MetaTrainer
+    from geonav.policy.engine import build_meta_trainer
     from geonav.policy.meta_config import MetaConfig
 
     cfg, net, rest = _algo_cfg(p)
+    eng = _engine_opts(rest)
     meta_opts = {k: rest.pop(k) for k in list(rest) if k in MetaConfig.__dataclass_fields__}
     if rest:
         raise ConfigError(f"stage {p.get('stage')!r}: unknown meta-train option(s) "
                           f"{sorted(rest)}")
     meta = from_dict(MetaConfig, {**meta_opts, "episodes": p["episodes"],
                                   "workers": p["workers"], "seed": p["seed"]})
-    t = MetaTrainer(env_factory, _init_net(p, net, resume), p["algo"], cfg, meta,
-                    out_dir=p["out_dir"], resume=resume, callbacks=callbacks,
-                    tensorboard=False)
+    t = build_meta_trainer(p["algo"], eng["engine"], env_factory, _init_net(p, net, resume),
+                           cfg, meta, device=eng["device"], out_dir=p["out_dir"],
+                           resume=resume, callbacks=callbacks, tensorboard=False)
     if resume is None:
         _load_init(t.model, p.get("init_checkpoint"), t.env)
     result = t.train()
@@ -218,6 +220,7 @@ def _curriculum(p: dict[str, Any], env_factory: Any, callbacks: list[Any],
     from geonav.policy.meta_config import CurriculumConfig
 
     cfg, net, rest = _algo_cfg(p)
+    eng = _engine_opts(rest)
     cur_opts = {k: rest.pop(k) for k in list(rest)
                 if k in CurriculumConfig.__dataclass_fields__}
     if rest:
@@ -233,7 +236,7 @@ def _curriculum(p: dict[str, Any], env_factory: Any, callbacks: list[Any],
     res = run_curriculum(env_factory, p.get("init_checkpoint"), p["algo"], cfg, cur,
                          out_dir=p["out_dir"], criterion=criterion,
                          net_cfg=None if p.get("init_checkpoint") else net,
-                         callbacks=callbacks)
+                         callbacks=callbacks, **eng)
     return res.model, res.episodes, str(res.checkpoint)
 
 

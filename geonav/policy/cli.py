@@ -38,8 +38,8 @@ def add_parser(subparsers: Any) -> None:
                               description="Train a policy on a scene's tasks. The run folder "
                               "gets config.json, metrics.csv, checkpoints/ and "
                               "learning_curve.png.")
-    p.add_argument("--algo", default="a3c", choices=["a3c", "savn", "isar"],
-                   help="training algorithm")
+    p.add_argument("--algo", default="a3c", choices=["a3c", "savn", "isar", "ppo"],
+                   help="training algorithm (ppo: batched engine only)")
     p.add_argument("--scene", required=True, help="scene package folder")
     p.add_argument("--tasks", required=True, help="task set JSON")
     p.add_argument("--altitude", type=positive_float, default=None, metavar="M",
@@ -64,9 +64,10 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument("--config", default=None, metavar="TOML",
                    help="TOML file with [net] and [a3c] tables; command-line options win")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    from geonav.policy.meta_cli import add_algo_args, add_parsers
+    from geonav.policy.meta_cli import add_algo_args, add_engine_args, add_parsers
 
     add_algo_args(p)
+    add_engine_args(p)
     p.set_defaults(handler=run_train)
 
     e = subparsers.add_parser("eval", help="evaluate a policy checkpoint",
@@ -90,16 +91,20 @@ def add_parser(subparsers: Any) -> None:
     add_parsers(subparsers)
 
 
-def resolve_train_configs(args: argparse.Namespace) -> tuple[Any, Any]:
-    """(NetConfig, A3CConfig) from defaults, the TOML file and the command line."""
+def resolve_train_configs(args: argparse.Namespace, table: str = "a3c",
+                          cls: Any = None) -> tuple[Any, Any]:
+    """(NetConfig, A3CConfig) from defaults, the TOML file and the command line (``table``
+    and ``cls``: another A3CConfig subclass, e.g. ``[ppo]`` and PPOConfig)."""
     from geonav.policy.config import A3CConfig, LossConfig, NetConfig, from_dict
 
+    cls = cls or A3CConfig
     toml = load_toml(getattr(args, "config", None))
-    unknown = sorted(set(toml) - {"net", "a3c"})
+    unknown = sorted(set(toml) - {"net", table})
     if unknown:
-        raise ConfigError(f"unknown table(s) {unknown} in {args.config}; use [net] and [a3c]")
+        raise ConfigError(f"unknown table(s) {unknown} in {args.config}; use [net] and "
+                          f"[{table}]")
     net_d = dict(toml.get("net", {}))
-    a3c_d = dict(toml.get("a3c", {}))
+    a3c_d = dict(toml.get(table, {}))
     for key, val in (("encoder", args.encoder), ("encoder_weights", args.encoder_weights),
                      ("obs_size_px", args.obs_size),
                      ("prev_view_input", getattr(args, "prev_view_input", None) or None)):
@@ -111,23 +116,29 @@ def resolve_train_configs(args: argparse.Namespace) -> tuple[Any, Any]:
         if val is not None:
             a3c_d[key] = val
     if "loss" in a3c_d and not isinstance(a3c_d["loss"], dict):
-        raise ConfigError("[a3c.loss] must be a table")
-    a3c_d.setdefault("loss", {})
-    a3c = from_dict(A3CConfig, {**a3c_d, "loss": a3c_d["loss"] or {}})
+        raise ConfigError(f"[{table}.loss] must be a table")
+    if "loss" in a3c_d or cls is A3CConfig:
+        a3c_d["loss"] = a3c_d.get("loss") or {}
+    a3c = from_dict(cls, a3c_d)
     if not isinstance(a3c.loss, LossConfig):
-        raise ConfigError("invalid [a3c.loss] table")
+        raise ConfigError(f"invalid [{table}.loss] table")
     return from_dict(NetConfig, net_d) if net_d else None, a3c
 
 
 def run_train(args: argparse.Namespace) -> int:
     """Handler of ``geonav train``."""
-    from geonav.policy.a3c import A3CTrainer
+    from geonav.policy.engine import build_trainer
 
-    if args.algo != "a3c":
+    if args.algo not in ("a3c", "ppo"):
         from geonav.policy.meta_cli import run_train_algo
 
         return run_train_algo(args)
-    net_cfg, a3c = resolve_train_configs(args)
+    if args.algo == "ppo":
+        from geonav.policy.batched.ppo import PPOConfig
+
+        net_cfg, a3c = resolve_train_configs(args, "ppo", PPOConfig)
+    else:
+        net_cfg, a3c = resolve_train_configs(args)
     obs = args.obs_size if args.obs_size is not None else (
         net_cfg.obs_size_px if net_cfg is not None else None)
     factory = EnvFactory(str(args.scene), str(args.tasks), args.altitude, obs,
@@ -135,8 +146,9 @@ def run_train(args: argparse.Namespace) -> int:
     if net_cfg is not None and obs is None:  # take the task set camera's size
         net_cfg = replace(net_cfg, obs_size_px=int(factory().observation_space["image"].shape[0]))
     progress = TqdmProgress(args.no_progress)
-    trainer = A3CTrainer(factory, net_cfg, a3c, out_dir=args.out, resume=args.resume,
-                         callbacks=[progress.callback])
+    trainer = build_trainer(args.algo, args.engine, factory, net_cfg, a3c, batch=args.batch,
+                            device=args.device, out_dir=args.out, resume=args.resume,
+                            callbacks=[progress.callback])
     result = trainer.train()
     sr = [r["success"] for r in result.records[-100:]]
     print(f"trained {result.episodes} episodes ({result.env_steps} steps, "

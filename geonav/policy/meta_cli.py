@@ -43,6 +43,18 @@ def add_algo_args(p: argparse.ArgumentParser) -> None:
                    help="ISAR: batched recompute of each segment (default) or a graph per step")
 
 
+def add_engine_args(p: argparse.ArgumentParser) -> None:
+    """``--engine``, ``--batch`` and ``--device`` (geonav.policy.engine)."""
+    g = p.add_argument_group("engine")
+    g.add_argument("--engine", choices=["batched", "async"], default="batched",
+                   help="'batched': many episodes in lock-step in one process (default); "
+                   "'async': the per-episode multi-process reference trainer")
+    g.add_argument("--batch", type=positive_int, default=None, metavar="B",
+                   help="batched engine: episodes stepped together (default 16)")
+    g.add_argument("--device", choices=["cpu", "cuda"], default="cpu",
+                   help="batched engine: torch device (cuda is refused without a GPU)")
+
+
 def _toml(args: argparse.Namespace) -> dict[str, Any]:
     return load_toml(getattr(args, "config", None))
 
@@ -105,8 +117,7 @@ def _summary(result: Any) -> str:
 
 def run_train_algo(args: argparse.Namespace) -> int:
     """``geonav train --algo savn|isar``."""
-    from geonav.policy.isar import ISARTrainer
-    from geonav.policy.savn import SAVNTrainer
+    from geonav.policy.engine import build_trainer
 
     toml = _toml(args)
     _check_tables(toml, {"net", args.algo}, args.config)
@@ -116,10 +127,10 @@ def run_train_algo(args: argparse.Namespace) -> int:
     net = net_cfg_from_args(args, toml, factory)
     if net is not None and args.obs_size is None:
         factory = replace(factory, obs_size_px=net.obs_size_px)
-    cls = {"savn": SAVNTrainer, "isar": ISARTrainer}[args.algo]
     progress = TqdmProgress(args.no_progress)
-    result = cls(factory, net, cfg, out_dir=args.out, resume=args.resume,
-                 callbacks=[progress.callback]).train()
+    result = build_trainer(args.algo, args.engine, factory, net, cfg, batch=args.batch,
+                           device=args.device, out_dir=args.out, resume=args.resume,
+                           callbacks=[progress.callback]).train()
     print(_summary(result))
     return 0
 
@@ -148,6 +159,7 @@ def _common(p: argparse.ArgumentParser, algo_default: str) -> None:
                    "algorithm's table, [meta] / [curriculum]; command-line options win")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_algo_args(p)
+    add_engine_args(p)
 
 
 def add_parsers(subparsers: Any) -> None:
@@ -196,7 +208,7 @@ def add_parsers(subparsers: Any) -> None:
 def run_meta_train(args: argparse.Namespace) -> int:
     """Handler of ``geonav meta-train``."""
     from geonav.policy.config import from_dict
-    from geonav.policy.meta import MetaTrainer
+    from geonav.policy.engine import build_meta_trainer
     from geonav.policy.meta_config import MetaConfig
 
     toml = _toml(args)
@@ -220,8 +232,9 @@ def run_meta_train(args: argparse.Namespace) -> int:
     if net is not None and args.obs_size is None:
         factory = replace(factory, obs_size_px=net.obs_size_px)
     progress = TqdmProgress(args.no_progress)
-    result = MetaTrainer(factory, net, args.algo, base, meta, out_dir=args.out,
-                         resume=args.resume, callbacks=[progress.callback]).train()
+    result = build_meta_trainer(args.algo, args.engine, factory, net, base, meta,
+                                device=args.device, out_dir=args.out, resume=args.resume,
+                                callbacks=[progress.callback]).train()
     print(_summary(result))
     return 0
 
@@ -275,7 +288,8 @@ def run_curriculum_cmd(args: argparse.Namespace) -> int:
             factory = replace(factory, obs_size_px=net.obs_size_px)
     progress = TqdmProgress(args.no_progress)
     res = run_curriculum(factory, args.init, args.algo, base, cur, out_dir=args.out,
-                         criterion=criterion, net_cfg=net, callbacks=[progress.callback])
+                         criterion=criterion, net_cfg=net, callbacks=[progress.callback],
+                         engine=args.engine, batch=args.batch, device=args.device)
     for s in res.stages:
         print(f"stage {s.alt_m:g} m: {s.episodes} episodes, converged at "
               f"{s.converged_at if s.converged_at is not None else 'never (budget)'}")

@@ -153,6 +153,7 @@ class ActorCritic(nn.Module):
             logits (T, B, n_actions), values (T, B) and the state after step T, whose
             ``p`` is the softmax of the last logits.
         """
+        # Batched mirror: geonav/policy/batched/core.py; change both (test_batched_core.py).
         T, B = obs.shape[0], obs.shape[1]
         obs_f = self.features(obs.reshape(T * B, *obs.shape[2:]))
         tgt_f = self.features(target)
