@@ -65,13 +65,54 @@ def load_toml(path: str | None) -> dict[str, Any]:
     return data
 
 
+def progress_interval_s() -> float:
+    """Seconds between progress lines when stderr is not a terminal (GEONAV_PROGRESS_S, 30)."""
+    import os
+
+    try:
+        return max(0.0, float(os.environ.get("GEONAV_PROGRESS_S", "30")))
+    except ValueError:
+        return 30.0
+
+
+def is_terminal() -> bool:
+    return bool(getattr(sys.stderr, "isatty", lambda: False)())
+
+
+class LineProgress:
+    """One line on stderr at most every ``interval_s`` (for logs: no carriage returns)."""
+
+    def __init__(self, interval_s: float | None = None) -> None:
+        import time
+
+        self.interval_s = progress_interval_s() if interval_s is None else interval_s
+        self._clock = time.monotonic
+        self._last = self._clock()
+
+    def due(self) -> bool:
+        now = self._clock()
+        if now - self._last >= self.interval_s:
+            self._last = now
+            return True
+        return False
+
+    @staticmethod
+    def write(text: str) -> None:
+        print(text, file=sys.stderr, flush=True)
+
+
 class TqdmProgress:
-    """Turns trainer callbacks into a tqdm bar (success-rate moving average in the postfix)."""
+    """Turns trainer callbacks into a tqdm bar on a terminal (success-rate moving average in
+    the postfix), or into one progress line every 30 s when stderr is not a terminal."""
 
     def __init__(self, disable: bool) -> None:
         from tqdm import tqdm  # type: ignore[import-untyped]
 
         from geonav.policy.callbacks import Callback
+
+        if not disable and not is_terminal():
+            self.callback = _line_callback(Callback)
+            return
 
         class _CB(Callback):
             def on_train_start(cb, info: dict[str, Any]) -> None:
@@ -90,6 +131,34 @@ class TqdmProgress:
                     cb.bar.close()
 
         self.callback = _CB()
+
+
+def _line_callback(base: type) -> Any:
+    import time
+
+    class _Lines(base):  # type: ignore[misc, valid-type]
+        def on_train_start(cb, info: dict[str, Any]) -> None:
+            cb.lines = LineProgress()
+            cb.total = info["episodes"]
+            cb.recent: list[float] = []
+            cb.t0 = time.monotonic()
+            LineProgress.write(f"training: episode {info['start_episode']}/{cb.total}")
+
+        def on_episode(cb, record: dict[str, Any]) -> None:
+            cb.recent = (cb.recent + [float(record["success"])])[-100:]
+            if cb.lines.due():
+                LineProgress.write(
+                    f"training: episode {record['episode']}/{cb.total}, "
+                    f"{record.get('env_steps', '?')} env steps, training SR (last "
+                    f"{len(cb.recent)}) {sum(cb.recent) / len(cb.recent):.2f}, "
+                    f"{time.monotonic() - cb.t0:.0f} s")
+
+        def on_eval(cb, row: dict[str, Any]) -> None:
+            LineProgress.write(f"evaluation at episode {row['episode']}: greedy SR "
+                               f"{row['greedy_sr']:.2f}, sampled SR {row['sampled_sr']:.2f} "
+                               f"from {row['starts']} starts")
+
+    return _Lines()
 
 
 # -- argparse: one-line errors, negative numbers, typed values -------------------------------

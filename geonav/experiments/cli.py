@@ -129,10 +129,51 @@ def run_sweep(args: argparse.Namespace) -> int:
     return 1 if any(r["failed_units"] for r in record["rows"]) else 0
 
 
+def _lines(name: str):
+    """Unit progress for logs: a line per unit start/end and a summary every 30 s."""
+    from geonav.cliutil import LineProgress
+    from geonav.experiments.runner import UnitEvent
+
+    lines = LineProgress()
+    running: dict[str, tuple[int, int]] = {}
+
+    class _Overall:
+        def close(self) -> None:
+            pass
+
+    def on_event(ev: UnitEvent) -> None:
+        if ev.unit is None:
+            return
+        key = f"{ev.run}:{ev.unit.key}" if ev.run and name == "sweep" else ev.unit.key
+        if ev.status == "started":
+            running[key] = (0, ev.budget)
+            LineProgress.write(f"{name}: unit {key} started ({ev.done_units}/{ev.total_units} "
+                               "done)")
+        elif ev.status == "progress":
+            running[key] = (ev.episodes, ev.budget)
+        elif ev.status in ("done", "failed", "skipped"):
+            running.pop(key, None)
+            extra = f": {ev.message}" if ev.status == "failed" else ""
+            LineProgress.write(f"{name}: unit {key} {ev.status} ({ev.done_units}/"
+                               f"{ev.total_units} done){extra}")
+        elif ev.status == "retry":
+            LineProgress.write(f"{name}: unit {key}: worker died, retrying from its last "
+                               "checkpoint")
+        if running and lines.due():
+            LineProgress.write(f"{name}: {ev.done_units}/{ev.total_units} units done; " +
+                               ", ".join(f"{k} {e}/{b} ep" for k, (e, b) in running.items()))
+
+    return on_event, _Overall()
+
+
 def _bars(name: str):
     from tqdm import tqdm
 
+    from geonav.cliutil import is_terminal
     from geonav.experiments.runner import UnitEvent
+
+    if not is_terminal():
+        return _lines(name)
 
     bars: dict[str, tqdm] = {}
     overall = tqdm(total=0, desc=f"{name}: units", position=0, unit="unit", disable=None)

@@ -264,6 +264,12 @@ def execute_stage(p: dict[str, Any]) -> dict[str, Any]:
     env_factory = EnvFactory(p["scene"], p["tasks"])
     callbacks: list[Any] = [ProgressFile(out / "progress.json")]
     p = dict(p, options=dict(p["options"]))
+    if p["options"].pop("tensorboard", False):  # stage option: TensorBoard under SB3's tags
+        from geonav.policy.callbacks import tensorboard_callback
+
+        tb = tensorboard_callback(out / "tb", required=True)
+        if tb is not None:
+            callbacks.append(tb)
     if p["options"].pop("stop_at_convergence", False) and p["mode"] != "curriculum":
         from geonav.convergence import ConvergenceCriterion
         from geonav.policy.callbacks import read_metrics

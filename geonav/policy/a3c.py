@@ -590,6 +590,7 @@ class A3CTrainer:
         """Handle one finished episode in the main process; False asks to stop."""
         self.episodes_done += 1
         result.env_steps += int(rec["length"])
+        rec["env_steps"] = self.total_env_steps(result)  # running total, resumes included
         rec["elapsed_s"] = round(self._elapsed_base + time.perf_counter() - self._t_start, 3)
         if self.keep_records:
             result.records.append(rec)
@@ -599,6 +600,8 @@ class A3CTrainer:
                 go_on = False
         if self._eval_every and self.episodes_done % self._eval_every == 0:
             self.evaluate_now(cbs, result)
+        if self.cfg.total_steps and rec["env_steps"] >= self.cfg.total_steps:
+            go_on = False  # the step budget is spent
         every = self.cfg.checkpoint_every
         if self.out_dir is not None and every and self.episodes_done % every == 0:
             path = self.save(self.out_dir / "checkpoints" / "latest.pt", self.episodes_done,

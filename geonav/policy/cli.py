@@ -34,7 +34,7 @@ def add_parser(subparsers: Any) -> None:
     from geonav.policy.config import ENCODERS, A3CConfig, NetConfig, field_help
 
     nh, ah = field_help(NetConfig), field_help(A3CConfig)
-    p = subparsers.add_parser("train", help="train a navigation policy (A3C)",
+    p = subparsers.add_parser("train", help="train a navigation policy (A3C, SAVN, ISAR, PPO)",
                               description="Train a policy on a scene's tasks. The run folder "
                               "gets config.json, metrics.csv, checkpoints/ and "
                               "learning_curve.png.")
@@ -112,7 +112,8 @@ def resolve_train_configs(args: argparse.Namespace, table: str = "a3c",
             net_d[key] = val
     for key, val in (("episodes", args.episodes), ("workers", args.workers),
                      ("seed", args.seed), ("t_max", args.t_max), ("lr", args.lr),
-                     ("checkpoint_every", args.checkpoint_every)):
+                     ("checkpoint_every", args.checkpoint_every),
+                     ("total_steps", getattr(args, "total_steps", None))):
         if val is not None:
             a3c_d[key] = val
     if "loss" in a3c_d and not isinstance(a3c_d["loss"], dict):
@@ -145,15 +146,13 @@ def run_train(args: argparse.Namespace) -> int:
                          args.max_steps)
     if net_cfg is not None and obs is None:  # take the task set camera's size
         net_cfg = replace(net_cfg, obs_size_px=int(factory().observation_space["image"].shape[0]))
+    from geonav.policy.meta_cli import extra_callbacks, run_summary
+
     progress = TqdmProgress(args.no_progress)
     trainer = build_trainer(args.algo, args.engine, factory, net_cfg, a3c, batch=args.batch,
                             device=args.device, out_dir=args.out, resume=args.resume,
-                            callbacks=[progress.callback])
-    result = trainer.train()
-    sr = [r["success"] for r in result.records[-100:]]
-    print(f"trained {result.episodes} episodes ({result.env_steps} steps, "
-          f"{result.steps_per_s:.0f} steps/s); last-100 success rate "
-          f"{(sum(sr) / len(sr)) if sr else float('nan'):.2f}; checkpoint {result.checkpoint}")
+                            callbacks=[progress.callback, *extra_callbacks(args)])
+    print(run_summary(trainer.train()))
     return 0
 
 

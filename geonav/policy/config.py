@@ -104,6 +104,9 @@ class A3CConfig:
 
     episodes: int = 1000
     """Training episodes in total, counted over all workers (including resumed ones)."""
+    total_steps: int = 0
+    """Env-step budget in total (including resumed steps; 0: none). Training ends at
+    whichever budget, episodes or steps, runs out first (at an episode end)."""
     workers: int = 2
     """Worker processes; 0 runs the deterministic single-process mode."""
     t_max: int = 15
@@ -142,6 +145,8 @@ class A3CConfig:
     def __post_init__(self) -> None:
         if self.episodes < 1:
             raise ConfigError(f"episodes must be >= 1, got {self.episodes}")
+        if self.total_steps < 0:
+            raise ConfigError(f"total_steps must be >= 0, got {self.total_steps}")
         if self.workers < 0:
             raise ConfigError(f"workers must be >= 0, got {self.workers}")
         if self.t_max < 1:

@@ -53,6 +53,24 @@ def add_engine_args(p: argparse.ArgumentParser) -> None:
                    help="batched engine: episodes stepped together (default 16)")
     g.add_argument("--device", choices=["cpu", "cuda"], default="cpu",
                    help="batched engine: torch device (cuda is refused without a GPU)")
+    b = p.add_argument_group("budget and logging")
+    b.add_argument("--total-steps", type=positive_int, default=None, metavar="N",
+                   help="env-step budget in total (resumed steps included; per stage for the "
+                   "curriculum); training ends when it or the episode budget runs out")
+    b.add_argument("--tensorboard", default=None, metavar="DIR",
+                   help="also log to TensorBoard event files in DIR under SB3's tag names "
+                   "(rollout/ep_rew_mean, rollout/success_rate, eval/..., train/...) against "
+                   "env steps, so runs overlay with SB3's (needs geonav[tensorboard])")
+
+
+def extra_callbacks(args: argparse.Namespace) -> list[Any]:
+    """The callbacks the common options ask for (--tensorboard)."""
+    if getattr(args, "tensorboard", None) is None:
+        return []
+    from geonav.policy.callbacks import tensorboard_callback
+
+    tb = tensorboard_callback(args.tensorboard, required=True)
+    return [tb] if tb is not None else []
 
 
 def _toml(args: argparse.Namespace) -> dict[str, Any]:
@@ -68,7 +86,7 @@ def base_cfg_from_args(args: argparse.Namespace, algo: str, toml: dict[str, Any]
     opts = dict(toml.get(algo, {}))
     for key, attr in (("episodes", "episodes"), ("workers", "workers"), ("seed", "seed"),
                       ("lr", "lr"), ("checkpoint_every", "checkpoint_every"),
-                      ("t_max", "t_max")):
+                      ("t_max", "t_max"), ("total_steps", "total_steps")):
         v = getattr(args, attr, None)
         if v is not None:
             opts[key] = v
@@ -108,11 +126,24 @@ def _check_tables(toml: dict[str, Any], allowed: set[str], path: Any) -> None:
         raise ConfigError(f"unknown table(s) {unknown} in {path}; use {sorted(allowed)}")
 
 
-def _summary(result: Any) -> str:
+def run_summary(result: Any) -> str:
+    """The closing line of a training command: this call's work and the run's totals, and
+    the final greedy evaluation when there was one."""
     sr = [r["success"] for r in result.records[-100:]]
-    return (f"trained {result.episodes} episodes ({result.env_steps} steps, "
-            f"{result.steps_per_s:.0f} steps/s); last-100 success rate "
-            f"{(sum(sr) / len(sr)) if sr else float('nan'):.2f}; checkpoint {result.checkpoint}")
+    new = result.episodes - result.start_episode
+    total = f" ({result.episodes} in all)" if result.start_episode else ""
+    text = (f"trained {new} episodes{total}, {result.env_steps} env steps, "
+            f"{result.steps_per_s:.0f} steps/s; last-{min(len(sr), 100)} training success "
+            f"{(sum(sr) / len(sr)) if sr else float('nan'):.2f}")
+    evals = getattr(result, "evals", None)
+    if evals:
+        e = evals[-1]
+        text += (f"; greedy SR {e['greedy_sr']:.2f} / SPL {e['greedy_spl']:.2f} from "
+                 f"{e['starts']} starts (sampled {e['sampled_sr']:.2f})")
+    return text + f"; checkpoint {result.checkpoint}"
+
+
+_summary = run_summary
 
 
 def run_train_algo(args: argparse.Namespace) -> int:
@@ -130,7 +161,7 @@ def run_train_algo(args: argparse.Namespace) -> int:
     progress = TqdmProgress(args.no_progress)
     result = build_trainer(args.algo, args.engine, factory, net, cfg, batch=args.batch,
                            device=args.device, out_dir=args.out, resume=args.resume,
-                           callbacks=[progress.callback]).train()
+                           callbacks=[progress.callback, *extra_callbacks(args)]).train()
     print(_summary(result))
     return 0
 
@@ -234,7 +265,7 @@ def run_meta_train(args: argparse.Namespace) -> int:
     progress = TqdmProgress(args.no_progress)
     result = build_meta_trainer(args.algo, args.engine, factory, net, base, meta,
                                 device=args.device, out_dir=args.out, resume=args.resume,
-                                callbacks=[progress.callback]).train()
+                                callbacks=[progress.callback, *extra_callbacks(args)]).train()
     print(_summary(result))
     return 0
 
@@ -288,7 +319,8 @@ def run_curriculum_cmd(args: argparse.Namespace) -> int:
             factory = replace(factory, obs_size_px=net.obs_size_px)
     progress = TqdmProgress(args.no_progress)
     res = run_curriculum(factory, args.init, args.algo, base, cur, out_dir=args.out,
-                         criterion=criterion, net_cfg=net, callbacks=[progress.callback],
+                         criterion=criterion, net_cfg=net,
+                         callbacks=[progress.callback, *extra_callbacks(args)],
                          engine=args.engine, batch=args.batch, device=args.device)
     for s in res.stages:
         print(f"stage {s.alt_m:g} m: {s.episodes} episodes, converged at "
