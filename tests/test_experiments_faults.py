@@ -160,7 +160,8 @@ def test_unit_lock_refuses_a_live_holder_and_takes_over_a_dead_ones(tmp_path, ca
 def test_sigkilled_runner_leaves_no_worker_alive(tmp_path):
     # two long units, one of them with an A3C worker process of its own (a grandchild)
     cfg = _config(tmp_path, [dict(name="solo", episodes=20000),
-                             dict(name="multi", episodes=20000, workers=1)])
+                             dict(name="multi", episodes=20000, workers=1,
+                                  extra='engine = "async"')])
     root = tmp_path / "runs" / "faults"
     proc = subprocess.Popen([sys.executable, "-m", "geonav.cli", "experiment", "run", str(cfg),
                              "--out", "runs", "--jobs", "2", "--fly", "no"], cwd=tmp_path,
@@ -270,7 +271,7 @@ def test_unit_that_raises_is_reported_with_its_traceback_and_the_rest_goes_on(tm
     assert summary["failed"]["bad/seed-0"].startswith("ConfigError: stage 'bad': unknown a3c")
     assert summary["failed"]["after_bad/seed-0"] == "parent bad/seed-0 failed"
     trace = (root / "units" / "bad" / "seed-0" / "error.txt").read_text()
-    assert trace.startswith("Traceback") and "_train_a3c" in trace
+    assert trace.startswith("Traceback") and "unknown a3c option(s) ['bogus']" in trace
     assert "ConfigError: stage 'bad': unknown a3c option(s) ['bogus']" in trace
     assert json.loads((root / "units/good/seed-0/result.json").read_text())["episodes"] == 20
     assert "## Failed units" in (root / "report.md").read_text()

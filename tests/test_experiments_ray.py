@@ -181,7 +181,8 @@ def test_killed_driver_leaves_nothing_running_on_the_cluster(tmp_path, ray_clust
     # long units, each with an A3C worker process of its own (no comparison: no budget
     # check of the convergence rule)
     text = (REPO / "configs" / "tiny.toml").read_text().split("[[compare]]")[0].replace(
-        "episodes = 60", "episodes = 50000").replace("workers = 0", "workers = 1")
+        "episodes = 60", "episodes = 50000").replace("workers = 0",
+                                                      'workers = 1\nengine = "async"')
     (tmp_path / "long.toml").write_text(text)
     env = {**os.environ, **RAY_ENV}
     log = (tmp_path / "driver.log").open("w")
