@@ -156,11 +156,15 @@ def task_difficulty(tm: TaskMap, max_steps: int | None = None,
         n_starts=len(starts), max_steps=int(cap))
 
 
-def set_difficulty(maps: Sequence[TaskMap], max_steps: int | None = None,
+def set_difficulty(maps: Sequence[TaskMap], max_steps: int | Sequence[int] | None = None,
                    blind_grid: int = 20) -> dict[str, Any]:
     """Per-task figures and their means over a task set (tasks weighted equally, as the
-    env samples tasks uniformly): ``{"tasks": {name: {...}}, "random_walk_sr": ...}``."""
-    per = {tm.task.name: task_difficulty(tm, max_steps, blind_grid) for tm in maps}
+    env samples tasks uniformly): ``{"tasks": {name: {...}}, "random_walk_sr": ...}``.
+
+    ``max_steps``: one cap for all, one per task, or None for each task's own."""
+    caps = list(max_steps) if isinstance(max_steps, Sequence) else [max_steps] * len(maps)
+    per = {tm.task.name: task_difficulty(tm, cap, blind_grid)
+           for tm, cap in zip(maps, caps, strict=True)}
     vals = list(per.values())
     return {"tasks": {k: v.to_dict() for k, v in per.items()},
             "random_walk_sr": float(np.mean([v.random_walk_sr for v in vals])),
@@ -171,14 +175,8 @@ def set_difficulty(maps: Sequence[TaskMap], max_steps: int | None = None,
 def env_difficulty(env: Any, blind_grid: int = 20) -> dict[str, Any]:
     """:func:`set_difficulty` of a GeoNavEnv's tasks at the env's own episode caps."""
     u = env.unwrapped
-    per = {}
-    for i, tm in enumerate(u.task_maps):
-        per[tm.task.name] = task_difficulty(tm, u.max_steps_of(i), blind_grid)
-    vals = list(per.values())
-    return {"tasks": {k: v.to_dict() for k, v in per.items()},
-            "random_walk_sr": float(np.mean([v.random_walk_sr for v in vals])),
-            "blind_sr": float(np.mean([v.blind_sr for v in vals])),
-            "mean_shortest_path": float(np.mean([v.mean_shortest_path for v in vals]))}
+    return set_difficulty(u.task_maps, [u.max_steps_of(i) for i in range(len(u.task_maps))],
+                          blind_grid)
 
 
 def taskset_difficulty(ts: Any, scene: Any, blind_grid: int = 20) -> dict[str, Any]:
