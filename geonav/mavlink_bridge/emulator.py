@@ -41,6 +41,7 @@ recorded for assertions.
 
 from __future__ import annotations
 
+import collections
 import logging
 import math
 import select
@@ -194,6 +195,9 @@ class Emulator:
         self.events: list[tuple[float, str]] = []
         self.track: list[tuple[float, float, float, float]] = []
         self.peer_heartbeats = 0
+        #: loop iterations run, and (wall gap s, emulated dt s) of the last ones.
+        self.iterations = 0
+        self.steps_log: collections.deque[tuple[float, float]] = collections.deque(maxlen=2000)
         # Vehicle state.
         self.t_s = 0.0
         self.pos = np.zeros(3)
@@ -358,12 +362,12 @@ class Emulator:
             number = M.custom_mode_value(self.flavour, name)
             self._set_mode(M.decode_mode(self.flavour, number), why="operator")
 
-    def push(self, north_mps: float, east_mps: float) -> None:
-        """A gust: add this horizontal velocity to the vehicle at once (overshoot tests)."""
+    def push(self, north_m: float, east_m: float) -> None:
+        """A gust blows the vehicle this far at once (fence-overshoot tests)."""
         with self._lock:
-            self.vel[0] += north_mps
-            self.vel[1] += east_mps
-            self._event(f"fault: gust {north_mps:+.1f} N {east_mps:+.1f} E m/s")
+            self.pos[0] += north_m
+            self.pos[1] += east_m
+            self._event(f"fault: gust moved the vehicle {north_m:+.1f} m N {east_m:+.1f} m E")
 
     def _start_airborne(self, alt_m: float) -> None:
         self.armed = True
@@ -400,12 +404,15 @@ class Emulator:
             try:
                 self._poll_io(_TICK_WALL_S)
                 now = time.monotonic()
-                dt = min((now - last) * self.cfg.time_scale, max_dt)
+                gap = now - last
+                dt = min(gap * self.cfg.time_scale, max_dt)
                 last = now
                 with self._lock:
                     self.t_s += dt
                     self._step(dt)
                     self._send_due()
+                    self.iterations += 1
+                    self.steps_log.append((gap, dt))
             except Exception:  # the emulated vehicle must not die of one bad iteration
                 log.exception("emulator iteration failed")
                 time.sleep(_TICK_WALL_S)

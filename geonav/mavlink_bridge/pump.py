@@ -85,7 +85,9 @@ class SetpointPump:
 
         Raises:
             SafetyViolation: the target is outside the fence; nothing is sent.
+            PumpFault (or the watchdog's error): the pump already stopped on a fault.
         """
+        self.raise_if_fault()
         if self.fence_check is not None:
             self.fence_check(target)
         with self._lock:
