@@ -142,7 +142,8 @@ class FlightRecorder:
         ax.set_xlabel("x east (m)")
         ax.set_ylabel("y north (m)")
         ax.set_title(f"geonav flight over {getattr(scene, 'name', 'scene')}")
-        ax.legend(loc="upper right", fontsize=8)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(loc="upper right", fontsize=8)
         png = self.out_dir / "track.png"
         fig.savefig(png, bbox_inches="tight")
         plt.close(fig)
