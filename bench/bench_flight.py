@@ -126,6 +126,7 @@ def main() -> None:
         s.origin or LonLat(ekf_origin.lon_deg, ekf_origin.lat_deg),
         s.position.down_m if s.position else 0.0,
         45.0,
+        autopilot=vehicle.autopilot,
     )
     fence = Geofence.from_bounds(scene.bounds_m, 10.0)
     pump = SetpointPump(
