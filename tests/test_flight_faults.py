@@ -294,8 +294,8 @@ def test_overshoot_past_the_fence_ends_in_landing(scene: Any, tmp_path: Path) ->
     # Fence margin = one 5 m step: setpoints stay 5 m inside the scene, the vehicle may
     # overshoot 2.5 m more. A gust blows it 12 m east of the last setpoint (cell 9 -> x 17.5).
     with _emulator(scene, "px4") as emu:
-        policy = _Hook([1] * 6, 4, lambda: emu.push(0.0, 12.0))
-        result = _fly(scene, emu, policy, tmp_path, target_cell=(10, 5))
+        policy = _Hook([1] * 3, 1, lambda: emu.push(0.0, 12.0))
+        result = _fly(scene, emu, policy, tmp_path, start_cell=(8, 5), target_cell=(10, 5))
         assert result.outcome == "safety_stop", result.reason
         assert "position fence" in result.reason and "breached" in result.reason
         assert result.end_action == "land" and result.end_ok and not emu.armed
@@ -375,7 +375,8 @@ def test_a_dead_autopilot_is_one_line_and_bounded(scene: Any, tmp_path: Path) ->
             vehicle = open_vehicle(emu.connect_url, "pymavlink")
             policy = _Hook(path_actions(START, TARGET), 1, emu.stop)  # the autopilot dies
             t0 = time.monotonic()
-            cfg = FlightConfig(target_cell=TARGET, start_cell=START, timeouts=FAST,
+            quick = Timeouts(**{**FAST.__dict__, "command_s": 1.0})
+            cfg = FlightConfig(target_cell=TARGET, start_cell=START, timeouts=quick,
                                heartbeat_timeout_s=1.0)
             result = run_flight(vehicle, scene, policy, cfg, tmp_path)
             elapsed = time.monotonic() - t0
