@@ -366,13 +366,16 @@ def test_an_altitude_clamp_is_a_warning(scene: Any, caplog: Any) -> None:
 
 
 # -------------------------------------------------------------------------- link loss
-def test_a_dead_autopilot_is_one_line_and_bounded(scene: Any, tmp_path: Path) -> None:
+@pytest.mark.parametrize("backend", ["pymavlink", "mavsdk"])
+def test_a_dead_autopilot_is_one_line_and_bounded(
+    scene: Any, tmp_path: Path, backend: str
+) -> None:
     errors: list[Any] = []
     old_hook = threading.excepthook
     threading.excepthook = errors.append
     try:
         with _emulator(scene, "ardupilot", listen="tcp:127.0.0.1:0") as emu:
-            vehicle = open_vehicle(emu.connect_url, "pymavlink")
+            vehicle = open_vehicle(emu.connect_url, backend)
             policy = _Hook(path_actions(START, TARGET), 1, emu.stop)  # the autopilot dies
             t0 = time.monotonic()
             quick = Timeouts(**{**FAST.__dict__, "command_s": 1.0})
@@ -431,3 +434,21 @@ def test_mavsdk_log_goes_to_python_logging(scene: Any, tmp_path: Path, caplog: A
         v.connect(10.0)
         v.close()
     assert any(r.name == "mavsdk" for r in caplog.records)
+
+
+def test_emulate_stops_on_sigterm(capsys: Any) -> None:
+    import argparse
+
+    from geonav.mavlink_bridge import cli
+
+    p = argparse.ArgumentParser()
+    cli.add_parser(p.add_subparsers())
+    args = p.parse_args(["mavlink", "emulate", "--listen", "udp:127.0.0.1:0"])
+    timer = threading.Timer(0.5, os.kill, (os.getpid(), signal.SIGTERM))
+    timer.start()
+    t0 = time.monotonic()
+    assert args.handler(args) == 0
+    timer.join()
+    assert time.monotonic() - t0 < 10
+    assert "emulator on udp:127.0.0.1:0" in capsys.readouterr().out
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
