@@ -206,7 +206,7 @@ class Emulator:
         self.armed = False
         self.landed = True
         self.mode = "posctl" if self.flavour == M.PX4 else "stabilize"
-        self._boot_mode = self.mode
+        self._boot_mode: str | None = self.mode
         self.origin: LonLat | None = None
         self.home = self.cfg.home
         self._armed_at: float | None = None
@@ -885,7 +885,7 @@ class Emulator:
                     LonLat(msg.longitude / 1e7, msg.latitude / 1e7, msg.altitude / 1000.0),
                     source="SET_GPS_GLOBAL_ORIGIN",
                 )
-                if not self.cfg.gps:
+                if not self.cfg.gps and self.origin is not None:
                     self.home = self.origin
                     self._send_home()
             else:

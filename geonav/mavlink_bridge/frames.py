@@ -38,7 +38,9 @@ PX4_EARTH_RADIUS_M = 6_371_000.0
 class LocalFrame(Protocol):
     """Horizontal lon/lat <-> (north, east) metres about an EKF origin."""
 
-    origin: LonLat
+    @property
+    def origin(self) -> LonLat:
+        """The EKF origin."""
 
     def to_ne(self, q: LonLat) -> tuple[float, float]:
         """(north_m, east_m) of ``q``."""

@@ -125,7 +125,7 @@ class MavsdkVehicle:
             if hasattr(coro, "close"):
                 coro.close()  # type: ignore[union-attr]
             raise FlightError(f"MAVSDK: {what}: the connection is closed")
-        fut = asyncio.run_coroutine_threadsafe(coro, self._loop)  # type: ignore[arg-type]
+        fut: concurrent.futures.Future[T] = asyncio.run_coroutine_threadsafe(coro, self._loop)  # type: ignore[arg-type]
         try:
             return fut.result(timeout_s)
         except concurrent.futures.TimeoutError as err:

@@ -158,12 +158,13 @@ class SetpointPump:
                     log.error("LAND after policy stall failed: %s", err)
                 return
             if self.watchdog is not None:
+                fault: FlightError | None
                 try:
-                    err = self.watchdog.error(self.vehicle.state())
+                    fault = self.watchdog.error(self.vehicle.state())
                 except FlightError as state_err:
-                    err = state_err
-                if err is not None:
-                    self._fail(err)
+                    fault = state_err
+                if fault is not None:
+                    self._fail(fault)
                     return
             with self._lock:
                 target, yaw = self._target, self._yaw_deg
