@@ -452,3 +452,22 @@ def test_emulate_stops_on_sigterm(capsys: Any) -> None:
     assert time.monotonic() - t0 < 10
     assert "emulator on udp:127.0.0.1:0" in capsys.readouterr().out
     assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+
+
+def test_a_task_files_target_cell_flies_as_is(scene: Any, tmp_path: Path) -> None:
+    from geonav.mavlink_bridge.flight import load_task
+    from geonav.testing import tiny_taskset
+
+    ts = tiny_taskset(scene, alt_m=10.0, cells=4, step_m=5.0, max_steps=6, target=(3, 2))
+    path = ts.save(tmp_path / "tasks.json")
+    assert load_task(f"{path}:tiny").target_cell == (3, 2)
+    with pytest.raises(ConfigError, match="not in"):
+        load_task(f"{path}:nope")
+    ec = EmulatorConfig(time_scale=6.0, boot_s=1.0, prearm_s=2.0, origin_s=0.6,
+                        local_position_s=1.2, offboard_loss_s=3.0)
+    # Cells count in the task's 4 x 4 lattice (region -10..10 m), not over the scene.
+    result = fly(ScriptedPolicy([1, 1, 1, 0, 0], META), scene, task=path, start_cell=(0, 0),
+                 dry_run=True, emulator_config=ec, out_dir=tmp_path / "f", timeouts=FAST)
+    assert result.success and result.final_cell == (3, 2) and result.steps == 5, result.reason
+    header = read_record(result.record_path)[0]
+    assert header["lattice_region_m"] == [-10.0, -10.0, 10.0, 10.0]
