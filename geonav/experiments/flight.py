@@ -98,4 +98,11 @@ def fly_result(cfg: ExperimentConfig, root: Path, progress: Any = None) -> dict[
             f"`flight/{Path(summary['record']).name}`.\n"
             + (f"\n![flight track]({rel})\n" if rel else ""))
         report.write_text(text)
+    if flight.outcome == "interrupted" and flight.signal_name:
+        # The vehicle has landed and the record is written; now stop the experiment too.
+        import signal
+
+        from geonav.mavlink_bridge.flight import FlightInterrupted
+
+        raise FlightInterrupted(int(signal.Signals[flight.signal_name]))
     return summary
