@@ -471,3 +471,29 @@ def test_a_task_files_target_cell_flies_as_is(scene: Any, tmp_path: Path) -> Non
     assert result.success and result.final_cell == (3, 2) and result.steps == 5, result.reason
     header = read_record(result.record_path)[0]
     assert header["lattice_region_m"] == [-10.0, -10.0, 10.0, 10.0]
+
+
+def test_a_process_freeze_right_after_arming_does_not_disarm(scene: Any, tmp_path: Path) -> None:
+    """The old flake: a 1 s pause after the ARM ACK jumped the emulated clock past DISARM_DELAY."""
+    import ctypes
+
+    freeze = ctypes.PyDLL(None).usleep  # holds the GIL: the whole process stands still
+    with _emulator(scene, "ardupilot", disarm_delay_s=4.0) as emu:
+        done = threading.Event()
+
+        def watch() -> None:
+            while not done.is_set():
+                if emu.armed:
+                    freeze(1_000_000)
+                    return
+                time.sleep(0.002)
+
+        watcher = threading.Thread(target=watch, daemon=True)
+        watcher.start()
+        try:
+            result = _fly(scene, emu, ScriptedPolicy([1], META), tmp_path, target_cell=(6, 5))
+        finally:
+            done.set()
+            watcher.join()
+        assert result.success, result.reason
+        assert not any("no take-off" in e for _, e in emu.events)
