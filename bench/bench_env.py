@@ -30,7 +30,7 @@ class WarpEnv(GeoNavEnv):
         super().__init__(*a, **kw)
         self.warp = WarpRenderer(self.scene, self.camera)
 
-    def observation_at(self, task_index, cell):
+    def _view(self, task_index, cell):  # what GeoNavEnv's observations are read through
         tm = self.task_maps[task_index]
         p = tm.lattice.center(cell)
         return self.warp.render(p.x_m, p.y_m, tm.task.alt_m)

@@ -16,7 +16,14 @@ identical grid (the local tmerc, same GSD, bounds and resampling, alpha band, 2 
 GDAL reads the XYZ folder through its WMS/TMS driver with a ``file://`` template.
 Throughput is source megapixels per second; medians of ``--repeat`` runs.
 
+With ``--large-cog`` it instead measures the peak memory (VmHWM of a child
+process) of ingesting a large COG (default 16000 x 16000 px RGB at 0.1 m, 768 MB as
+an array) without reading it whole: at ``--gsd 0.5`` (read decimated through the
+overviews) and at the native GSD cut to a 200 m ``--bbox`` (read by window), next
+to the RSS of the imports alone. No gdalwarp needed.
+
 Usage: python bench/bench_ingest.py [--repeat 3] [--keep DIR]
+       python bench/bench_ingest.py --large-cog [--cog-px 16000] [--keep DIR]
 """
 
 from __future__ import annotations
@@ -129,11 +136,106 @@ def bench_one(label: str, source: Path, gdal_source: Path, src_mpix: float, work
             (f"{label} package (COG JPEG)", src_mpix, t_package, g_package)]
 
 
+def make_large_cog(path: Path, n: int) -> None:
+    """An n x n RGB COG (JPEG, average overviews), written block by block (bounded memory)."""
+    import rasterio
+    import rasterio.shutil
+    from affine import Affine
+    from pyproj import Transformer
+    from rasterio.windows import Window
+
+    x0, y0 = Transformer.from_crs("EPSG:4326", "EPSG:32632", always_xy=True).transform(8.5, 47.4)
+    tmp = path.with_suffix(".tiled.tif")
+    rng = np.random.default_rng(2)
+    block = 1024
+    with rasterio.open(tmp, "w", driver="GTiff", width=n, height=n, count=3, dtype="uint8",
+                       crs="EPSG:32632", tiled=True, blockxsize=512, blockysize=512,
+                       compress="DEFLATE", BIGTIFF="YES",
+                       transform=Affine(0.1, 0, x0 - n * 0.05, 0, -0.1, y0 + n * 0.05)) as d:
+        for r in range(0, n, block):
+            for c in range(0, n, block):
+                h, w = min(block, n - r), min(block, n - c)
+                small = rng.integers(0, 255, (max(1, h // 16), max(1, w // 16), 3), np.uint8)
+                img = cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR)
+                d.write(np.moveaxis(img, 2, 0), window=Window(c, r, w, h))
+    rasterio.shutil.copy(tmp, path, driver="COG", compress="JPEG", quality=90, blocksize=512,
+                         overview_resampling="average", BIGTIFF="YES")
+    tmp.unlink()
+
+
+_CHILD = """
+import sys, warnings, json
+warnings.simplefilter("ignore")
+
+
+def vm_hwm_mb():
+    # peak RSS of this process image (VmHWM restarts at exec; ru_maxrss would carry the
+    # parent's peak over)
+    for line in open("/proc/self/status"):
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024
+
+
+
+from geonav.tiles.ingest import ingest
+import rasterio, numpy
+mode, src, out = sys.argv[1], sys.argv[2], sys.argv[3]
+base = vm_hwm_mb()
+kw = {}
+if mode == "coarse":
+    kw = dict(gsd_m=0.5)
+elif mode == "bbox":
+    with rasterio.open(src) as s:
+        from rasterio.warp import transform_bounds
+        w, so, e, n = transform_bounds(s.crs, "EPSG:4326", *s.bounds)
+    cx, cy = (w + e) / 2, (so + n) / 2
+    kw = dict(bbox_lonlat=(cx - 0.0013, cy - 0.0009, cx + 0.0013, cy + 0.0009))
+if mode != "imports":
+    scene = ingest([src], name="L", out=out, overwrite=True, **kw)
+    size = f"{scene.width}x{scene.height} px at {scene.gsd_m:g} m"
+else:
+    size = "-"
+print(json.dumps(dict(mode=mode, peak_mb=vm_hwm_mb(), imports_mb=base, scene=size)))
+"""
+
+
+def bench_large_cog(work: Path, n: int) -> int:
+    import json
+
+    cog = work / f"large{n}.tif"
+    t0 = time.perf_counter()
+    if not cog.exists():
+        make_large_cog(cog, n)
+    print(f"{n}x{n} px COG ({cog.stat().st_size / 1e6:.0f} MB on disk, "
+          f"{n * n * 3 / 2**20:.0f} MiB as an RGB array) ready in {time.perf_counter() - t0:.0f} s")
+    print(f"{'case':34s} {'peak RSS MiB':>12s} {'imports MiB':>11s} {'seconds':>8s}  scene")
+    for mode, label in (("imports", "imports only"), ("coarse", "whole COG at --gsd 0.5"),
+                        ("bbox", "200 m --bbox at native 0.1 m")):
+        t0 = time.perf_counter()
+        out = subprocess.run([sys.executable, "-c", _CHILD, mode, str(cog), str(work / "scene")],
+                             check=True, capture_output=True, text=True).stdout
+        r = json.loads(out.strip().splitlines()[-1])
+        print(f"{label:34s} {r['peak_mb']:12.0f} {r['imports_mb']:11.0f} "
+              f"{time.perf_counter() - t0:8.1f}  {r['scene']}")
+    return 0
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--keep", help="keep the inputs and outputs in this folder")
+    parser.add_argument("--large-cog", action="store_true",
+                        help="measure the peak memory of ingesting a large COG instead")
+    parser.add_argument("--cog-px", type=int, default=16000, help="side of the large COG")
     args = parser.parse_args(argv)
+    if args.large_cog:
+        work = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="geonav-bench-"))
+        work.mkdir(parents=True, exist_ok=True)
+        try:
+            return bench_large_cog(work, args.cog_px)
+        finally:
+            if not args.keep:
+                shutil.rmtree(work, ignore_errors=True)
     if shutil.which("gdalwarp") is None:
         print("gdalwarp not found: apt-get install gdal-bin", file=sys.stderr)
         return 1

@@ -25,12 +25,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
 
 from geonav.errors import CameraError
-from geonav.scene import Scene
+from geonav.scene import Scene, cached_array, file_key, raster_cache_dir
 
 cv2.setNumThreads(1)  # parallelism comes from env workers, not from OpenCV threads
 
@@ -69,8 +70,8 @@ class Camera:
 
 @dataclass
 class _AltitudeMap:
-    rgb: np.ndarray  # (pad + Hm + pad, pad + Wm + pad, 3) uint8
-    valid: np.ndarray  # same H, W; float32 fraction of valid source pixels
+    rgb: np.ndarray  # (pad + Hm + pad, pad + Wm + pad, 3) uint8, read-only
+    valid: np.ndarray | None  # same H, W; float32 fraction of valid source pixels (lazy)
     res_x_m: float  # map pixel size east
     res_y_m: float  # map pixel size north
     pad: int
@@ -78,6 +79,12 @@ class _AltitudeMap:
 
 class SliceRenderer:
     """North-up views at discrete altitudes by slicing prefiltered maps.
+
+    The maps are shared: every renderer of the same scene object, camera and fill (so
+    every env of one process over one scene) uses one map per altitude, stored on the
+    scene. For a scene opened from a package the map is also written once into the
+    package's raster cache and memory-mapped, so processes share its pages (one
+    vector-env worker costs little more than its interpreter).
 
     Args:
         scene: the scene.
@@ -89,7 +96,15 @@ class SliceRenderer:
         self.scene = scene
         self.camera = camera or Camera()
         self.fill = int(fill)
-        self._maps: dict[float, _AltitudeMap] = {}
+        # shared per scene object; a scene whose rgb or mask was replaced starts afresh
+        shared: dict[tuple[Camera, int], tuple[np.ndarray, np.ndarray,
+                                                dict[float, _AltitudeMap]]] = \
+            scene.__dict__.setdefault("_slice_maps", {})
+        key = (self.camera, self.fill)
+        entry = shared.get(key)
+        if entry is None or entry[0] is not scene.rgb or entry[1] is not scene.mask:
+            entry = shared[key] = (scene.rgb, scene.mask, {})
+        self._maps: dict[float, _AltitudeMap] = entry[2]
 
     def _map(self, alt_m: float) -> _AltitudeMap:
         key = float(alt_m)
@@ -97,26 +112,62 @@ class SliceRenderer:
             self._maps[key] = self._build(key)
         return self._maps[key]
 
+    def _grid(self, alt_m: float) -> tuple[float, int, int]:
+        """(image resolution in m/px, map width px, map height px) at ``alt_m``."""
+        res_m = self.camera.ground_res_m(alt_m)
+        width_m, height_m = self.scene.size_m
+        return res_m, max(1, round(width_m / res_m)), max(1, round(height_m / res_m))
+
+    def _resized_valid(self, alt_m: float) -> np.ndarray:
+        res_m, mw, mh = self._grid(alt_m)
+        interp = cv2.INTER_AREA if res_m >= self.scene.gsd_m else cv2.INTER_NEAREST
+        return cv2.resize(self.scene.mask.astype(np.float32), (mw, mh), interpolation=interp)
+
     def _build(self, alt_m: float) -> _AltitudeMap:
         scene, n = self.scene, self.camera.size_px
-        res_m = self.camera.ground_res_m(alt_m)
-        width_m, height_m = scene.size_m
-        mw, mh = max(1, round(width_m / res_m)), max(1, round(height_m / res_m))
-        if res_m >= scene.gsd_m:
-            rgb = cv2.resize(scene.rgb, (mw, mh), interpolation=cv2.INTER_AREA)
-            valid = cv2.resize(scene.mask.astype(np.float32), (mw, mh),
-                               interpolation=cv2.INTER_AREA)
-        else:  # imagery coarser than the view: upsample (warned about at ingestion)
-            rgb = cv2.resize(scene.rgb, (mw, mh), interpolation=cv2.INTER_LINEAR)
-            valid = cv2.resize(scene.mask.astype(np.float32), (mw, mh),
-                               interpolation=cv2.INTER_NEAREST)
-        if not scene.mask.all():
-            rgb[valid < 0.5] = self.fill
+        res_m, mw, mh = self._grid(alt_m)
         pad = n + 2
-        rgb = cv2.copyMakeBorder(rgb, pad, pad, pad, pad, cv2.BORDER_CONSTANT,
-                                 value=(self.fill,) * 3)
-        valid = cv2.copyMakeBorder(valid, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=0.0)
-        return _AltitudeMap(np.ascontiguousarray(rgb), valid, width_m / mw, height_m / mh, pad)
+
+        def build_rgb() -> np.ndarray:
+            # area averaging down to the view's resolution; imagery coarser than the view
+            # is upsampled (warned about at ingestion)
+            interp = cv2.INTER_AREA if res_m >= scene.gsd_m else cv2.INTER_LINEAR
+            rgb = cv2.resize(scene.rgb, (mw, mh), interpolation=interp)
+            if not scene.mask.all():
+                rgb[self._resized_valid(alt_m) < 0.5] = self.fill
+            return cv2.copyMakeBorder(rgb, pad, pad, pad, pad, cv2.BORDER_CONSTANT,
+                                      value=(self.fill,) * 3)
+
+        path = self._cache_path(alt_m)
+        if path is not None:
+            rgb = cached_array(path, build_rgb)
+        else:
+            rgb = np.ascontiguousarray(build_rgb())
+            rgb.flags.writeable = False
+        width_m, height_m = scene.size_m
+        return _AltitudeMap(rgb, None, width_m / mw, height_m / mh, pad)
+
+    def _cache_path(self, alt_m: float) -> Path | None:
+        """Where the map of a package scene is cached; None for in-memory or edited scenes."""
+        scene = self.scene
+        if not scene.is_mapped() or scene.path is None:
+            return None
+        ortho = scene.path / scene.manifest.get("ortho", {}).get("file", "ortho.tif")
+        try:
+            key, folder = file_key(ortho), raster_cache_dir(scene.path)
+        except OSError:
+            return None
+        cam = self.camera
+        return folder / (f"slice-{cam.size_px}px-{cam.fov_deg:g}deg-{alt_m:g}m-fill{self.fill}"
+                         f".rgb-{key}.npy")
+
+    def _valid(self, alt_m: float) -> np.ndarray:
+        m = self._map(alt_m)
+        if m.valid is None:
+            pad = m.pad
+            m.valid = cv2.copyMakeBorder(self._resized_valid(alt_m), pad, pad, pad, pad,
+                                         cv2.BORDER_CONSTANT, value=0.0)
+        return m.valid
 
     def _origin_px(self, m: _AltitudeMap, x_m: float, y_m: float) -> tuple[int, int]:
         n = self.camera.size_px
@@ -138,18 +189,22 @@ class SliceRenderer:
                 ymax - (row - m.pad + n / 2) * m.res_y_m)
 
     def render(self, x_m: float, y_m: float, alt_m: float) -> np.ndarray:
-        """The (N, N, 3) uint8 view centred at scene (x_m, y_m) from ``alt_m``."""
+        """The (N, N, 3) uint8 view centred at scene (x_m, y_m) from ``alt_m`` (a new array)."""
+        return self.view(x_m, y_m, alt_m).copy()
+
+    def view(self, x_m: float, y_m: float, alt_m: float) -> np.ndarray:
+        """The same view as :meth:`render`, as a read-only slice of the shared map (no copy)."""
         m = self._map(alt_m)
         row, col = self._origin_px(m, x_m, y_m)
         n = self.camera.size_px
-        return m.rgb[row:row + n, col:col + n].copy()
+        return m.rgb[row:row + n, col:col + n]
 
     def coverage(self, x_m: float, y_m: float, alt_m: float) -> float:
         """Fraction of the view that sees valid imagery (1.0 = fully inside)."""
         m = self._map(alt_m)
         row, col = self._origin_px(m, x_m, y_m)
         n = self.camera.size_px
-        return float(m.valid[row:row + n, col:col + n].mean())
+        return float(self._valid(alt_m)[row:row + n, col:col + n].mean())
 
 
 class WarpRenderer:

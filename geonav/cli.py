@@ -12,10 +12,10 @@ import argparse
 import importlib
 import logging
 import sys
-import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 from geonav import __version__
+from geonav.cliutil import GeonavParser, one_line_warnings, oserror_line
 from geonav.errors import GeonavError
 
 #: Modules that provide ``add_parser(subparsers)``; missing ones are skipped.
@@ -30,7 +30,7 @@ SUBCOMMAND_MODULES = (
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = GeonavParser(
         prog="geonav",
         description="Learn drone visual navigation from aerial imagery and fly it over MAVLink.",
     )
@@ -49,34 +49,12 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def progress_bar(desc: str) -> Callable[[str, float], None]:
-    """A progress callback (phase, fraction) drawn with tqdm on stderr."""
-    from tqdm import tqdm
-
-    bars: dict[str, tqdm] = {}
-
-    def update(phase: str, fraction: float) -> None:
-        bar = bars.get(phase)
-        if bar is None:
-            bar = bars[phase] = tqdm(total=1000, desc=f"{desc}: {phase}", leave=False,
-                                     unit="‰", disable=None)
-        bar.n = int(max(0.0, min(1.0, fraction)) * 1000)
-        bar.refresh()
-        if fraction >= 1.0:
-            bar.close()
-
-    return update
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     level = logging.WARNING - 10 * min(args.verbose, 2)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
-    from geonav.errors import GeonavWarning
-
-    warnings.simplefilter("default", GeonavWarning)
-    warnings.filterwarnings("ignore", category=PendingDeprecationWarning)
+    one_line_warnings()
     handler = getattr(args, "handler", None)
     if handler is None:
         parser.print_help()
@@ -84,7 +62,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(handler(args) or 0)
     except GeonavError as err:
-        print(f"geonav: error: {err}", file=sys.stderr)
+        print(f"geonav: error: {' '.join(str(err).split())}", file=sys.stderr)
+        return 2
+    except OSError as err:  # an unwritable --out, a full disk: the path and the reason
+        print(f"geonav: error: {oserror_line(err)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("geonav: interrupted", file=sys.stderr)

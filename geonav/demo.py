@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from geonav.cliutil import nonneg_int, positive_float, positive_int
+
 log = logging.getLogger(__name__)
 
 SCENES = (("A", "residential", 0), ("B", "campus", 1))
@@ -24,10 +26,10 @@ SCENES = (("A", "residential", 0), ("B", "campus", 1))
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("demo", help="synthesise scenes A and B, make tasks, draw rollouts")
     p.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
-    p.add_argument("--size", type=float, default=1200.0, help="scene side in metres")
-    p.add_argument("--gsd", type=float, default=0.25, help="scene GSD in m/px")
-    p.add_argument("--meta-tasks", type=int, default=15, help="meta-tasks on scene A")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--size", type=positive_float, default=1200.0, help="scene side in metres")
+    p.add_argument("--gsd", type=positive_float, default=0.25, help="scene GSD in m/px")
+    p.add_argument("--meta-tasks", type=positive_int, default=15, help="meta-tasks on scene A")
+    p.add_argument("--seed", type=nonneg_int, default=0)
     p.add_argument("--force", action="store_true", help="re-create existing scenes")
     p.set_defaults(handler=run)
 
@@ -69,7 +71,7 @@ def rollout(env, task_index: int, policy: str, seed: int) -> tuple[list, dict]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from geonav.cli import progress_bar
+    from geonav.cliutil import progress_bar
     from geonav.env import GeoNavEnv
     from geonav.tasks import sample_meta_tasks, whole_scene_tasks
     from geonav.viz import draw_scene

@@ -12,12 +12,13 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+import geonav
 from geonav.camera import Camera, SliceRenderer
 from geonav.errors import ConfigError, TaskError
-from geonav.scene import Scene
+from geonav.scene import Scene, open_shared
 from geonav.tasks import ACTION_MEANINGS, ACTION_MOVES, Cell, NavTask, TaskMap, TaskSet, bind
 
-ENV_ID = "geonav/GeoNav-v0"
+ENV_ID = geonav.ENV_ID
 
 
 class GeoNavEnv(gym.Env[dict[str, np.ndarray], np.int64]):
@@ -56,10 +57,23 @@ class GeoNavEnv(gym.Env[dict[str, np.ndarray], np.int64]):
     ``position_m`` (x, y scene metres), ``cell``, ``target_cell``,
     ``distance_m`` (shortest free path to the target, metres), ``shortest_path``
     (BFS steps from this episode's start, for SPL), ``collided``, ``success``,
-    ``task``, ``task_index``, ``alt_m``, ``steps``.
+    ``is_success`` (the same flag under the name Stable-Baselines3 reads for
+    ``rollout/success_rate`` and ``EvalCallback``), ``task``, ``task_index``,
+    ``alt_m``, ``steps``.
+
+    ## Memory and pickling
+    Observations are read-only slices of one prefiltered map per altitude
+    (:class:`geonav.camera.SliceRenderer`), shared by every env of a process over
+    the same scene; an env keeps no per-cell cache. A scene opened from a package
+    is memory-mapped and pickles as its path, so an env pickles as the package
+    path, its bound tasks and its parameters (a few kB), and vector-env workers
+    map the same pages instead of copying the scene. An in-memory scene
+    (:meth:`Scene.from_arrays`) pickles with its arrays.
 
     ## Version history
-    * v0: initial version.
+    * v0: initial version. Later additions that change no observation, reward or
+      dynamics (so the version stays v0): ``info["is_success"]``; registration on
+      ``import geonav``; light pickles and shared, memory-mapped render maps.
 
     Args:
         scene: a :class:`Scene` or the path of a scene package.
@@ -94,7 +108,7 @@ class GeoNavEnv(gym.Env[dict[str, np.ndarray], np.int64]):
             raise ConfigError(f"task_sampling must be 'random' or 'cycle', not {task_sampling!r}")
         if max_steps is not None and max_steps < 1:
             raise ConfigError(f"max_steps must be >= 1, got {max_steps}")
-        self.scene = scene if isinstance(scene, Scene) else Scene.open(scene)
+        self.scene = scene if isinstance(scene, Scene) else open_shared(scene)
         if isinstance(tasks, (str, Path, os.PathLike)):
             tasks = TaskSet.load(tasks)
         if isinstance(tasks, TaskSet):
@@ -115,13 +129,11 @@ class GeoNavEnv(gym.Env[dict[str, np.ndarray], np.int64]):
         self.render_mode = render_mode
         self.renderer = SliceRenderer(self.scene, self.camera)
         n = self.camera.size_px
-        image_space = spaces.Box(0, 255, (n, n, 3), np.uint8)
-        self.observation_space = spaces.Dict({"image": image_space, "target": image_space})
+        self.observation_space = self._observation_space()
         self.action_space = spaces.Discrete(len(ACTION_MOVES))
         self.action_meanings = ACTION_MEANINGS
         self._starts: list[list[Cell] | None] = [None] * len(self.task_maps)
-        self._obs: list[np.ndarray | None] = [None] * len(self.task_maps)
-        self._filled: list[np.ndarray | None] = [None] * len(self.task_maps)
+        self._views: list[dict[Cell, np.ndarray]] = [{} for _ in self.task_maps]
         self._cycle = -1
         self._tm: TaskMap = self.task_maps[0]
         self._ti = 0
@@ -131,24 +143,45 @@ class GeoNavEnv(gym.Env[dict[str, np.ndarray], np.int64]):
         self._track: list[Cell] = []
         self._target_obs = np.zeros((n, n, 3), np.uint8)
 
-    # -- observation cache --------------------------------------------------------------
+    # -- observations and pickling -------------------------------------------------------
     def observation_at(self, task_index: int, cell: Cell) -> np.ndarray:
-        """The (N, N, 3) view at a cell of a task, cached (do not modify it)."""
-        obs = self._obs[task_index]
-        if obs is None:
-            tm = self.task_maps[task_index]
-            nx, ny = tm.lattice.shape
-            n = self.camera.size_px
-            obs = self._obs[task_index] = np.zeros((nx, ny, n, n, 3), np.uint8)
-            self._filled[task_index] = np.zeros((nx, ny), bool)
-        filled = self._filled[task_index]
-        assert filled is not None
-        if not filled[cell]:
+        """The (N, N, 3) uint8 view at a cell of a task (a new array)."""
+        return self._view(task_index, cell).copy()
+
+    def _view(self, task_index: int, cell: Cell) -> np.ndarray:
+        """The same view as a read-only slice of the shared altitude map (no copy).
+
+        The slices are kept per cell (an array header each, not the pixels), so a step
+        costs a dict look-up as the old per-cell pixel cache did.
+        """
+        views = self._views[task_index]
+        view = views.get(cell)
+        if view is None:
             tm = self.task_maps[task_index]
             p = tm.lattice.center(cell)
-            obs[cell] = self.renderer.render(p.x_m, p.y_m, tm.task.alt_m)
-            filled[cell] = True
-        return obs[cell]
+            view = views[cell] = self.renderer.view(p.x_m, p.y_m, tm.task.alt_m)
+        return view
+
+    def _observation_space(self) -> spaces.Dict:
+        n = self.camera.size_px
+        image_space = spaces.Box(0, 255, (n, n, 3), np.uint8)
+        return spaces.Dict({"image": image_space, "target": image_space})
+
+    def __getstate__(self) -> dict[str, Any]:
+        # what can be rebuilt from the scene and the camera is left out: the renderer and
+        # the per-cell slices (references into the scene's shared maps), the target view
+        # and the Box spaces (their bounds are two arrays of the image's size each)
+        state = self.__dict__.copy()
+        for key in ("renderer", "_views", "_target_obs", "observation_space"):
+            state.pop(key, None)
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self.renderer = SliceRenderer(self.scene, self.camera)
+        self._views = [{} for _ in self.task_maps]
+        self.observation_space = self._observation_space()
+        self._target_obs = self.observation_at(self._ti, self._tm.task.target_cell)
 
     def max_steps_of(self, task_index: int) -> int:
         return self.max_steps_override or self.task_maps[task_index].task.max_steps
@@ -195,7 +228,7 @@ class GeoNavEnv(gym.Env[dict[str, np.ndarray], np.int64]):
         self._start = self._cell = start
         self._steps = 0
         self._track = [start]
-        self._target_obs = self.observation_at(ti, self._tm.task.target_cell).copy()
+        self._target_obs = self.observation_at(ti, self._tm.task.target_cell)
         return self._observation(), self._info(collided=False)
 
     def _choose_task(self, requested: Any) -> int:
@@ -235,13 +268,14 @@ class GeoNavEnv(gym.Env[dict[str, np.ndarray], np.int64]):
         return self._observation(), reward, terminated, truncated, self._info(collided)
 
     def _observation(self) -> dict[str, np.ndarray]:
-        return {"image": self.observation_at(self._ti, self._cell).copy(),
+        return {"image": self._view(self._ti, self._cell).copy(),
                 "target": self._target_obs.copy()}
 
     def _info(self, collided: bool) -> dict[str, Any]:
         tm = self._tm
         p = tm.lattice.center(self._cell)
         d = int(tm.dist_to_target[self._cell])
+        success = self._cell == tm.task.target_cell
         return {
             "position_m": (p.x_m, p.y_m),
             "cell": self._cell,
@@ -249,7 +283,8 @@ class GeoNavEnv(gym.Env[dict[str, np.ndarray], np.int64]):
             "distance_m": d * tm.task.step_m,
             "shortest_path": int(tm.dist_to_target[self._start]),
             "collided": collided,
-            "success": self._cell == tm.task.target_cell,
+            "success": success,
+            "is_success": success,
             "task": tm.task.name,
             "task_index": self._ti,
             "alt_m": tm.task.alt_m,
@@ -261,7 +296,7 @@ class GeoNavEnv(gym.Env[dict[str, np.ndarray], np.int64]):
         if self.render_mode != "rgb_array":
             return None
         side = 168
-        view = cv2.resize(self.observation_at(self._ti, self._cell), (side, side),
+        view = cv2.resize(self._view(self._ti, self._cell), (side, side),
                           interpolation=cv2.INTER_NEAREST)
         target = cv2.resize(self._target_obs, (side, side), interpolation=cv2.INTER_NEAREST)
         cv2.rectangle(target, (0, 0), (side - 1, side - 1), (255, 60, 60), 2)
@@ -292,9 +327,5 @@ class GeoNavEnv(gym.Env[dict[str, np.ndarray], np.int64]):
 
 
 def register() -> None:
-    """Register ``geonav/GeoNav-v0`` with Gymnasium (idempotent)."""
-    if ENV_ID not in gym.envs.registry:
-        gym.register(id=ENV_ID, entry_point="geonav.env:GeoNavEnv")
-
-
-register()
+    """Register ``geonav/GeoNav-v0`` with Gymnasium (idempotent; ``import geonav`` does it)."""
+    geonav.register_envs()

@@ -12,6 +12,7 @@ lat/lon axis-order trap.
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -32,6 +33,11 @@ class LonLat:
     alt_m: float = 0.0
 
     def __post_init__(self) -> None:
+        values = (self.lon_deg, self.lat_deg, self.alt_m)
+        if not all(isinstance(v, numbers.Real) and not isinstance(v, bool) for v in values):
+            raise GeoError(f"lon/lat/alt must be numbers, got {values!r}")
+        if not all(math.isfinite(v) for v in values):
+            raise GeoError(f"lon/lat/alt {values} must be finite numbers (no nan/inf)")
         if not (-180.0 <= self.lon_deg <= 180.0) or not (-90.0 <= self.lat_deg <= 90.0):
             raise GeoError(
                 f"lon/lat ({self.lon_deg}, {self.lat_deg}) is outside WGS 84 range; "

@@ -18,6 +18,9 @@ import math
 import os
 import shutil
 import tempfile
+import uuid
+import weakref
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -26,8 +29,8 @@ import numpy as np
 from affine import Affine
 
 from geonav import __version__
-from geonav.errors import SceneError
-from geonav.geo import LonLat, SceneFrame, ScenePoint, parse_crs, scene_crs
+from geonav.errors import GeonavError, GeonavWarning, SceneError
+from geonav.geo import LonLat, SceneFrame, ScenePoint, parse_crs, transformer
 
 log = logging.getLogger(__name__)
 
@@ -45,6 +48,60 @@ def sha256_file(path: str | os.PathLike[str], chunk: int = 1 << 20) -> str:
         while block := f.read(chunk):
             h.update(block)
     return h.hexdigest()
+
+
+_TMP_TAG = "geonav-tmp"
+
+
+def temp_dir(parent: Path, stem: str) -> Path:
+    """A new hidden temporary folder ``parent/.{stem}.geonav-tmp-{pid}-XXXX``.
+
+    The pid in the name lets a later run tell a folder of a killed run (its process
+    is gone) from one still being written (:func:`clean_stale_temps`).
+    """
+    parent.mkdir(parents=True, exist_ok=True)
+    return Path(tempfile.mkdtemp(prefix=f".{stem}.{_TMP_TAG}-{os.getpid()}-", dir=parent))
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError):
+        return True  # someone else's process, or cannot tell: leave its folder alone
+    return True
+
+
+def clean_stale_temps(parent: Path, stem: str) -> list[Path]:
+    """Remove the temporary folders of ``stem`` whose writing process no longer runs.
+
+    A run killed with SIGKILL (or a power cut) cannot clean up after itself; the
+    next run does, and says so with a warning. Returns the folders removed.
+    """
+    import warnings
+
+    removed = []
+    if not parent.is_dir():
+        return removed
+    for entry in parent.glob(f".{stem}.{_TMP_TAG}-*"):
+        try:
+            pid = int(entry.name[len(f".{stem}.{_TMP_TAG}-"):].split("-", 1)[0])
+        except ValueError:
+            continue
+        if entry.is_dir() and pid != os.getpid() and not _pid_alive(pid):
+            shutil.rmtree(entry, ignore_errors=True)
+            removed.append(entry)
+            warnings.warn(f"removed {entry}, a temporary folder left by a killed run "
+                          f"(pid {pid})", GeonavWarning, stacklevel=3)
+    return removed
+
+
+def _lon_span(lons: list[float]) -> tuple[float, float]:
+    """(west, east) of corner longitudes; west > east when they straddle 180 degrees."""
+    if max(lons) - min(lons) > 180.0:  # the short way round crosses the antimeridian
+        return min(x for x in lons if x > 0), max(x for x in lons if x < 0)
+    return min(lons), max(lons)
 
 
 @dataclass
@@ -150,6 +207,44 @@ class Scene:
                           list(self.transform)[:6], self.origin.lon_deg, self.origin.lat_deg])
         return hashlib.sha256(key.encode()).hexdigest()[:16]
 
+    # -- copies and pickles -----------------------------------------------------------
+    def is_mapped(self) -> bool:
+        """True when the rasters are still the package's read-only memory maps from :meth:`open`.
+
+        Such a scene pickles as its package path (a few hundred bytes): the receiving
+        process maps the same decoded rasters (:func:`open_shared`) instead of getting a
+        copy of them.
+        """
+        mapped = self.__dict__.get("_mapped")
+        if mapped is None or self.path is None:
+            return False
+        now = (self.rgb, self.mask, self.dsm)
+        return all(a is b for a, b in zip(now, mapped, strict=True))
+
+    def __getstate__(self) -> dict[str, Any]:
+        # caches (render maps, renderers) are rebuilt where the scene lands
+        return {k: v for k, v in self.__dict__.items() if not k.startswith("_")}
+
+    def __reduce_ex__(self, protocol: Any) -> Any:
+        if self.is_mapped():
+            return (open_shared, (str(self.path),))
+        return super().__reduce_ex__(protocol)
+
+    def __copy__(self) -> Scene:
+        new = object.__new__(type(self))
+        new.__dict__.update({k: v for k, v in self.__dict__.items() if not k.startswith("_")
+                             or k == "_mapped"})
+        return new
+
+    def __deepcopy__(self, memo: dict[int, Any]) -> Scene:
+        import copy
+
+        new = object.__new__(type(self))
+        memo[id(self)] = new
+        new.__dict__.update(copy.deepcopy({k: v for k, v in self.__dict__.items()
+                                           if not k.startswith("_")}, memo))
+        return new
+
     # -- disk -------------------------------------------------------------------------
     def save(self, out_dir: str | os.PathLike[str], *, overwrite: bool = False,
              compress: str = "JPEG") -> Path:
@@ -166,7 +261,8 @@ class Scene:
         if out.exists() and not overwrite:
             raise SceneError(f"{out} exists; pass overwrite=True (CLI: --force) to replace it")
         out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+        clean_stale_temps(out.parent, out.name)
+        tmp = temp_dir(out.parent, out.name)
         tmp.chmod(0o755)
         try:
             crs = self.frame.crs.to_wkt()
@@ -185,7 +281,12 @@ class Scene:
                                    compress="DEFLATE", predictor=3, **profile) as dst:
                     dst.write(self.dsm.astype(np.float32), 1)
             manifest = self._manifest(tmp)
-            (tmp / MANIFEST).write_text(json.dumps(manifest, indent=2))
+            try:
+                text = json.dumps(manifest, indent=2, allow_nan=False)
+            except ValueError as err:  # NaN/inf is not JSON: refuse rather than write it
+                raise SceneError(f"scene {self.name!r}: the manifest holds a non-finite "
+                                 f"number ({err}); check --ground-alt and --origin") from err
+            (tmp / MANIFEST).write_text(text)
             if out.exists():
                 shutil.rmtree(out)
             os.replace(tmp, out)
@@ -193,13 +294,15 @@ class Scene:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
         self.manifest, self.path = manifest, out
+        self.__dict__.pop("_mapped", None)  # the arrays are not the new package's decoding
         log.info("wrote scene %s to %s (%dx%d px at %.3f m)", self.name, out, self.width,
                  self.height, self.gsd_m)
         return out
 
     def _manifest(self, folder: Path) -> dict[str, Any]:
         xmin, ymin, xmax, ymax = self.bounds_m
-        corners = [self.frame.to_lonlat(ScenePoint(x, y)) for x in (xmin, xmax) for y in (ymin, ymax)]
+        corners = [self.frame.to_lonlat(ScenePoint(x, y))
+                   for x in (xmin, xmax) for y in (ymin, ymax)]
         manifest = dict(self.manifest)
         manifest.update(
             schema_version=SCHEMA_VERSION,
@@ -210,8 +313,11 @@ class Scene:
             width=self.width,
             height=self.height,
             bounds_m=[xmin, ymin, xmax, ymax],
-            bounds_wgs84=[min(c.lon_deg for c in corners), min(c.lat_deg for c in corners),
-                          max(c.lon_deg for c in corners), max(c.lat_deg for c in corners)],
+            # [west, south, east, north]; west > east when the scene crosses 180 degrees
+            bounds_wgs84=[_lon_span([c.lon_deg for c in corners])[0],
+                          min(c.lat_deg for c in corners),
+                          _lon_span([c.lon_deg for c in corners])[1],
+                          max(c.lat_deg for c in corners)],
             origin=dict(lon_deg=self.origin.lon_deg, lat_deg=self.origin.lat_deg,
                         alt_m=self.origin.alt_m, alt_reference="AMSL (ground at origin)"),
             frame="local tmerc: +x east, +y north; NED north = y, east = x",
@@ -227,7 +333,13 @@ class Scene:
 
     @classmethod
     def open(cls, path: str | os.PathLike[str], *, verify_checksums: bool = False) -> Scene:
-        """Open and validate a scene package; SceneError names each problem found."""
+        """Open and validate a scene package; SceneError names each problem found.
+
+        Besides the manifest's fields and types, the rasters must agree with it:
+        ortho and DSM on the manifest grid (size, transform, CRS), ``gsd_m`` equal
+        to the transform's pixel size, and the CRS centred on the recorded origin
+        (else the flight frame would be displaced).
+        """
         import rasterio
         from rasterio.errors import RasterioError
 
@@ -240,9 +352,14 @@ class Scene:
         ortho_path = folder / manifest["ortho"]["file"]
         if not ortho_path.is_file():
             raise SceneError(f"{folder}: {ortho_path.name} is missing")
-        if verify_checksums and sha256_file(ortho_path) != manifest["ortho"]["sha256"]:
+        if verify_checksums and sha256_file(ortho_path) != manifest["ortho"].get("sha256"):
             problems.append(f"{ortho_path.name} does not match its sha256 in {MANIFEST}")
-        origin = LonLat(**{k: manifest["origin"][k] for k in ("lon_deg", "lat_deg", "alt_m")})
+        try:
+            origin = LonLat(**{k: float(manifest["origin"][k])
+                               for k in ("lon_deg", "lat_deg", "alt_m")})
+        except GeonavError as err:
+            raise SceneError(f"{folder / MANIFEST}: origin is invalid: {err}") from err
+        transform = Affine(*manifest["transform"])
         try:
             with rasterio.open(ortho_path) as src:
                 if src.count != 3 or src.dtypes[0] != "uint8":
@@ -261,8 +378,8 @@ class Scene:
                 if problems:
                     raise SceneError(f"scene package {folder} is inconsistent: "
                                      + "; ".join(problems))
-                rgb = np.ascontiguousarray(np.moveaxis(src.read(), 0, 2))
-                mask = src.dataset_mask() > 0
+                rgb, mask = mapped_ortho(ortho_path, src)
+                ortho_crs = src.crs
             dsm = None
             if manifest.get("dsm"):
                 dsm_path = folder / manifest["dsm"]["file"]
@@ -274,26 +391,84 @@ class Scene:
                         raise SceneError(f"{dsm_path.name} is {src.width}x{src.height} px, "
                                          f"not on the ortho grid "
                                          f"{manifest['width']}x{manifest['height']}")
-                    dsm = src.read(1).astype(np.float32)
+                    shift = math.hypot(src.transform.c - transform.c,
+                                       src.transform.f - transform.f)
+                    if (not np.allclose(list(src.transform)[:6], manifest["transform"],
+                                        atol=1e-6) or src.crs is None
+                            or not parse_crs(src.crs.to_wkt()).equals(
+                                parse_crs(ortho_crs.to_wkt()))):
+                        raise SceneError(
+                            f"{dsm_path.name} is not on the ortho grid: its transform is "
+                            f"{list(src.transform)[:6]} ({shift:.1f} m from the ortho's "
+                            f"corner) and CRS {'missing' if src.crs is None else 'given'}; "
+                            "re-ingest the scene with --dsm")
+                    if src.count != 1:
+                        raise SceneError(f"{dsm_path.name} must have one band, has {src.count}")
+                    dsm = mapped_dsm(dsm_path, src)
         except RasterioError as err:
             raise SceneError(f"cannot read the rasters of {folder}: {err}") from err
-        expected = scene_crs(origin)
-        if not parse_crs(manifest["crs_wkt2"]).equals(expected):
-            log.warning("scene %s: CRS is not the local tmerc at its origin", folder)
-        transform = Affine(*manifest["transform"])
+        _check_origin(folder, manifest, origin)
         if not math.isclose(transform.a, -transform.e, rel_tol=1e-9) or transform.b or transform.d:
             raise SceneError(f"scene {folder}: pixels must be square and north-up, transform "
                              f"is {manifest['transform']}")
+        if not math.isclose(float(manifest["gsd_m"]), transform.a, rel_tol=1e-6):
+            raise SceneError(f"scene {folder}: gsd_m {manifest['gsd_m']} disagrees with the "
+                             f"transform's pixel size {transform.a}; re-create the package")
+        if dsm is not None and np.isinf(dsm).any():
+            raise SceneError(f"scene {folder}: {manifest['dsm']['file']} holds infinite heights")
         scene = cls(manifest["name"], rgb, mask, float(manifest["gsd_m"]), transform, origin,
                     dsm, manifest, folder)
+        scene.__dict__["_mapped"] = (rgb, mask, dsm)
         return scene
 
 
+#: How far (m) the recorded origin may sit from the centre of the recorded CRS.
+ORIGIN_TOL_M = 0.01
+
+
+def _check_origin(folder: Path, manifest: dict[str, Any], origin: LonLat) -> None:
+    # The flight frame is built from the origin, the pixels from the CRS: they must agree.
+    crs = parse_crs(manifest["crs_wkt2"])
+    try:
+        x, y = transformer(parse_crs("EPSG:4326"), crs).transform(origin.lon_deg,
+                                                                   origin.lat_deg)
+    except Exception as err:  # noqa: BLE001 - any projection failure is the same problem
+        raise SceneError(f"scene {folder}: the origin cannot be projected into its CRS "
+                         f"({err})") from err
+    off = math.hypot(x, y) if math.isfinite(x) and math.isfinite(y) else math.inf
+    if off > ORIGIN_TOL_M:
+        raise SceneError(
+            f"scene {folder}: origin {origin.lon_deg:.7f},{origin.lat_deg:.7f} is {off:.2f} m "
+            f"from the centre of crs_wkt2 (the local tmerc must be centred on the origin, "
+            "or the flight frame moves); re-create the package")
+
+
+_NUMBER = (int, float)
 _REQUIRED: dict[str, type | tuple[type, ...]] = {
-    "schema_version": int, "name": str, "crs_wkt2": str, "gsd_m": (int, float),
+    "schema_version": int, "name": str, "crs_wkt2": str, "gsd_m": _NUMBER,
     "transform": list, "width": int, "height": int, "bounds_m": list, "bounds_wgs84": list,
     "origin": dict, "ortho": dict, "sources": list,
 }
+
+
+def _non_finite(value: Any, where: str) -> list[str]:
+    """Key paths of NaN/inf numbers anywhere in a parsed JSON value."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return [where]
+    if isinstance(value, dict):
+        return [p for k, v in value.items() for p in _non_finite(v, f"{where}.{k}")]
+    if isinstance(value, list):
+        return [p for i, v in enumerate(value) for p in _non_finite(v, f"{where}[{i}]")]
+    return []
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, _NUMBER) and not isinstance(v, bool)
+
+
+def _plain_file(v: Any) -> bool:
+    return isinstance(v, str) and bool(v) and "/" not in v and "\\" not in v and v not in (
+        ".", "..")
 
 
 def read_manifest(folder: Path) -> dict[str, Any]:
@@ -305,9 +480,12 @@ def read_manifest(folder: Path) -> dict[str, Any]:
         manifest = json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
         raise SceneError(f"{path} is not valid JSON ({err}); re-create the package") from err
+    except OSError as err:
+        raise SceneError(f"{path} cannot be read: {err.strerror or err}") from err
     if not isinstance(manifest, dict):
         raise SceneError(f"{path} must hold a JSON object")
-    problems = []
+    problems = [f"{p.removeprefix('.')!r} is not a finite number"
+                for p in _non_finite(manifest, "")]
     for key, typ in _REQUIRED.items():
         if key not in manifest:
             problems.append(f"missing {key!r}")
@@ -317,17 +495,25 @@ def read_manifest(folder: Path) -> dict[str, Any]:
         if manifest["schema_version"] != SCHEMA_VERSION:
             problems.append(f"schema_version {manifest['schema_version']} is not "
                             f"{SCHEMA_VERSION}; re-ingest with this geonav")
-        if len(manifest["transform"]) != 6:
-            problems.append("'transform' must have 6 coefficients")
+        if not _plain_file(manifest["name"]):
+            problems.append(f"'name' {manifest['name']!r} must be a non-empty name without '/'")
+        for key, n in (("transform", 6), ("bounds_m", 4), ("bounds_wgs84", 4)):
+            if len(manifest[key]) != n or not all(map(_is_number, manifest[key])):
+                problems.append(f"{key!r} must have {n} coefficients" if key == "transform"
+                                else f"{key!r} must be a list of {n} numbers")
         if manifest["gsd_m"] <= 0:
             problems.append(f"'gsd_m' must be positive, is {manifest['gsd_m']}")
         if manifest["width"] <= 0 or manifest["height"] <= 0:
             problems.append("'width' and 'height' must be positive")
         for key in ("lon_deg", "lat_deg", "alt_m"):
-            if not isinstance(manifest["origin"].get(key), (int, float)):
+            if not _is_number(manifest["origin"].get(key)):
                 problems.append(f"'origin.{key}' is missing or not a number")
-        if "file" not in manifest["ortho"]:
-            problems.append("'ortho.file' is missing")
+        if not _plain_file(manifest["ortho"].get("file")):
+            problems.append("'ortho.file' must be the name of a file in the package")
+        dsm = manifest.get("dsm")
+        if dsm is not None and not (isinstance(dsm, dict) and _plain_file(dsm.get("file"))):
+            problems.append("'dsm' must be null or an object whose 'file' names a file in "
+                            "the package")
         try:
             parse_crs(manifest["crs_wkt2"])
         except Exception as err:  # noqa: BLE001 - reported as a problem below
@@ -335,3 +521,119 @@ def read_manifest(folder: Path) -> dict[str, Any]:
     if problems:
         raise SceneError(f"{path} is invalid: " + "; ".join(problems))
     return manifest
+
+
+# -- memory-mapped rasters (the loading side of Scene.open) --------------------------------
+CACHE_ENV = "GEONAV_CACHE_DIR"
+"""Environment variable: the folder for decoded rasters of every package (default: a
+``.geonav-cache`` folder inside each package, or ``$XDG_CACHE_HOME/geonav`` when the
+package is read-only). ``GEONAV_RASTER_CACHE=0`` turns the cache off: rasters are then
+decoded into each process's memory, as before (more memory per worker, no disk used)."""
+PACKAGE_CACHE = ".geonav-cache"
+
+
+def raster_cache_dir(folder: Path) -> Path:
+    """The folder that holds a package's decoded rasters (created if needed)."""
+    override = os.environ.get(CACHE_ENV)
+    if not override:
+        local = folder / PACKAGE_CACHE
+        try:
+            local.mkdir(exist_ok=True)
+            if os.access(local, os.W_OK):
+                return local
+        except OSError:
+            pass
+        base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "geonav"
+    else:
+        base = Path(override)
+    sub = base / "scenes" / hashlib.sha256(str(folder.resolve()).encode()).hexdigest()[:16]
+    sub.mkdir(parents=True, exist_ok=True)
+    return sub
+
+
+def file_key(path: Path) -> str:
+    """A short key that changes whenever the file at ``path`` is replaced or rewritten."""
+    st = path.stat()
+    return hashlib.sha256(f"{path.resolve()}|{st.st_size}|{st.st_mtime_ns}".encode()
+                          ).hexdigest()[:16]
+
+
+def cached_array(path: Path, build: Callable[[], np.ndarray]) -> np.ndarray:
+    """A read-only memory map of the ``.npy`` file at ``path``, written first from ``build()``.
+
+    The file is written to a temporary name and renamed, so processes that race on it
+    all map a whole file; older files of the same name stem with another key (the last
+    ``-`` part) are removed. When the folder cannot be written, the built array is
+    returned (read-only, in memory) and a warning logged.
+
+    Memory-mapped pages belong to the page cache: every process that maps the same
+    file shares them, which is what keeps vector-env workers light.
+    """
+    if os.environ.get("GEONAV_RASTER_CACHE") == "0":
+        arr = np.ascontiguousarray(build())
+        arr.flags.writeable = False
+        return arr
+    if path.is_file():
+        try:
+            return np.asarray(np.load(path, mmap_mode="r"))
+        except (OSError, ValueError) as err:  # truncated by a crash before the rename
+            log.warning("rebuilding the unreadable raster cache %s (%s)", path, err)
+    arr = np.ascontiguousarray(build())
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
+    try:
+        with open(tmp, "wb") as f:
+            np.save(f, arr)
+        os.replace(tmp, path)
+    except OSError as err:
+        tmp.unlink(missing_ok=True)
+        log.warning("cannot write the raster cache %s (%s); keeping it in memory", path, err)
+        arr.flags.writeable = False
+        return arr
+    stem = path.name.rsplit("-", 1)[0]
+    for old in path.parent.glob(f"{stem}-*.npy"):
+        if old != path and old.name.rsplit("-", 1)[0] == stem:
+            old.unlink(missing_ok=True)
+    return np.asarray(np.load(path, mmap_mode="r"))
+
+
+def mapped_ortho(path: Path, src: Any) -> tuple[np.ndarray, np.ndarray]:
+    """The ortho's (H, W, 3) uint8 pixels and (H, W) bool mask as read-only memory maps.
+
+    Decoded from the open dataset ``src`` on first use into the package's raster cache
+    (:func:`raster_cache_dir`); later opens, in any process, only map the files.
+    """
+    cache, key = raster_cache_dir(path.parent), file_key(path)
+    rgb = cached_array(cache / f"{path.stem}.rgb-{key}.npy",
+                       lambda: np.moveaxis(src.read(), 0, 2))
+    mask = cached_array(cache / f"{path.stem}.mask-{key}.npy", lambda: src.dataset_mask() > 0)
+    return rgb, mask
+
+
+def mapped_dsm(path: Path, src: Any) -> np.ndarray:
+    """The DSM's (H, W) float32 metres as a read-only memory map (see :func:`mapped_ortho`)."""
+    cache, key = raster_cache_dir(path.parent), file_key(path)
+    return cached_array(cache / f"{path.stem}.dsm-{key}.npy",
+                        lambda: src.read(1).astype(np.float32))
+
+
+_SHARED: weakref.WeakValueDictionary[tuple[str, int], Scene] = weakref.WeakValueDictionary()
+
+
+def open_shared(path: str | os.PathLike[str]) -> Scene:
+    """The process's :class:`Scene` of a package: opened once, shared while anyone holds it.
+
+    Envs of one process that name the same package (or are unpickled from one) share
+    one scene object, hence one set of render maps (:class:`geonav.camera.SliceRenderer`).
+    The scene is re-opened when its ``scene.json`` has changed since.
+    """
+    folder = Path(path)
+    try:
+        stamp = (folder / MANIFEST).stat().st_mtime_ns
+    except OSError:
+        stamp = -1
+    key = (str(folder.resolve()), stamp)
+    scene = _SHARED.get(key)
+    if scene is None:
+        scene = Scene.open(folder)
+        _SHARED[key] = scene
+    return scene

@@ -11,6 +11,10 @@ Per-cell grids are numpy arrays of shape ``(nx, ny)`` indexed ``[ix, iy]``.
 
 Obstacles at altitude ``h``: a cell is blocked when the DSM within
 ``safety_radius_m`` of its centre rises above ``h - clearance_m``.
+
+Imagery coverage: a cell is a valid target or start only when the camera view
+from ``h`` above it has at least ``min_coverage`` (default 99 %) valid imagery
+(:func:`view_coverage`); the rest of the lattice can still be flown over.
 """
 
 from __future__ import annotations
@@ -40,6 +44,8 @@ Region = tuple[float, float, float, float]
 ACTION_MOVES: tuple[Cell, ...] = ((0, 1), (1, 0), (-1, 0), (0, -1))
 ACTION_MEANINGS: tuple[str, ...] = ("forward", "right", "left", "backward")
 TASKSET_SCHEMA = 1
+#: Least fraction of valid imagery in a target's or start's view (item 5 of issue 13).
+DEFAULT_MIN_COVERAGE = 0.99
 
 
 @dataclass(frozen=True)
@@ -119,6 +125,8 @@ class NavTask:
         target_cell: the goal cell (ix, iy).
         max_steps: episode cap (70 in the paper's sub-region runs, 120 in the curriculum).
         obstacles: the obstacle model used with the scene's DSM.
+        min_coverage: least fraction of valid imagery in the view of the target and
+            of every start cell at ``alt_m``.
     """
 
     name: str
@@ -129,6 +137,7 @@ class NavTask:
     target_cell: Cell
     max_steps: int = 70
     obstacles: ObstacleModel = field(default_factory=ObstacleModel)
+    min_coverage: float = DEFAULT_MIN_COVERAGE
 
     @property
     def lattice(self) -> Lattice:
@@ -149,15 +158,17 @@ class NavTask:
                 target_cell=(int(d["target_cell"][0]), int(d["target_cell"][1])),
                 max_steps=int(d.get("max_steps", 70)),
                 obstacles=ObstacleModel(**d.get("obstacles", {})),
+                min_coverage=float(d.get("min_coverage", DEFAULT_MIN_COVERAGE)),
             )
-        except (KeyError, TypeError, ValueError, IndexError) as err:
+        except (KeyError, TypeError, ValueError, IndexError, AttributeError) as err:
             raise TaskError(f"task {d.get('name', '?')!r} is malformed: {err!r}") from err
 
     def with_alt(self, alt_m: float, *, max_steps: int | None = None) -> NavTask:
         """The same lattice and target at another altitude (curriculum stages)."""
         return NavTask(f"{self.name.rsplit('@', 1)[0]}@{alt_m:g}m", self.kind, self.region_m,
                        self.step_m, alt_m, self.target_cell,
-                       self.max_steps if max_steps is None else max_steps, self.obstacles)
+                       self.max_steps if max_steps is None else max_steps, self.obstacles,
+                       self.min_coverage)
 
 
 def blocked_cells(scene: Scene, lattice: Lattice, alt_m: float,
@@ -212,16 +223,20 @@ class TaskMap:
     task: NavTask
     blocked: np.ndarray
     dist_to_target: np.ndarray
+    coverage: np.ndarray | None = None
 
     @property
     def lattice(self) -> Lattice:
         return self.task.lattice
 
     def start_cells(self, max_steps: int | None = None) -> list[Cell]:
-        """Free cells from which the target is reachable within the cap (target excluded)."""
+        """Free cells from which the target is reachable within the cap (target excluded)
+        and whose view has at least the task's ``min_coverage`` of valid imagery."""
         cap = self.task.max_steps if max_steps is None else max_steps
         ok = (self.dist_to_target > 0) & (self.dist_to_target <= cap)
-        return [(int(x), int(y)) for x, y in zip(*np.nonzero(ok))]
+        if self.coverage is not None:
+            ok &= self.coverage >= self.task.min_coverage
+        return [(int(x), int(y)) for x, y in zip(*np.nonzero(ok), strict=True)]
 
     def shortest_path_action(self, cell: Cell) -> int:
         """An action that moves one step closer to the target (the BFS oracle)."""
@@ -238,12 +253,47 @@ def view_margin_m(alt_m: float, camera: Camera) -> float:
     return camera.footprint_m(alt_m) / 2.0
 
 
+def view_coverage(scene: Scene, lattice: Lattice, alt_m: float, camera: Camera) -> np.ndarray:
+    """(nx, ny) fraction of valid imagery in the camera view centred on each cell.
+
+    The view is the footprint square at ``alt_m``; pixels outside the scene count
+    as missing. Summed-area table of the mask, reduced so a footprint spans about
+    256 blocks (error under 0.5 %), over the window the lattice's views cover.
+    """
+    foot = camera.footprint_m(alt_m)
+    half = foot / 2
+    xmin, ymin, xmax, ymax = lattice.region_m
+    rs, cs = scene.window((xmin - half, ymin - half, xmax + half, ymax + half))
+    f = max(1, int(foot / scene.gsd_m / 256))
+    m = scene.mask[rs, cs]
+    h, w = -(-m.shape[0] // f), -(-m.shape[1] // f)
+    padded = np.zeros((h * f, w * f), np.float32)
+    padded[:m.shape[0], :m.shape[1]] = m
+    blocks = padded.reshape(h, f, w, f).mean(axis=(1, 3))
+    sat = np.zeros((h + 1, w + 1), np.float64)
+    sat[1:, 1:] = blocks.cumsum(0).cumsum(1)
+    block_m = scene.gsd_m * f
+    x0 = scene.transform.c + (cs.start or 0) * scene.gsd_m
+    y0 = scene.transform.f - (rs.start or 0) * scene.gsd_m
+    xs, ys = lattice.centers()
+    c0 = np.rint((xs - half - x0) / block_m).astype(np.int64)
+    c1 = np.rint((xs + half - x0) / block_m).astype(np.int64)
+    r0 = np.rint((y0 - (ys + half)) / block_m).astype(np.int64)
+    r1 = np.rint((y0 - (ys - half)) / block_m).astype(np.int64)
+    area = np.maximum((c1 - c0) * (r1 - r0), 1)
+    c0, c1 = np.clip(c0, 0, w), np.clip(c1, 0, w)
+    r0, r1 = np.clip(r0, 0, h), np.clip(r1, 0, h)
+    count = sat[r1, c1] - sat[r0, c1] - sat[r1, c0] + sat[r0, c0]
+    return np.clip(count / area, 0.0, 1.0)
+
+
 def bind(task: NavTask, scene: Scene, camera: Camera | None = None) -> TaskMap:
     """Check ``task`` against ``scene`` and compute its obstacles and distances.
 
     Raises:
         TaskError: region outside the scene or without its view margin, target
-            outside the lattice, on an obstacle, or unreachable from every cell.
+            outside the lattice, on an obstacle, unreachable from every cell, or with
+            less than ``task.min_coverage`` valid imagery in its view.
     """
     camera = camera or Camera()
     lattice = task.lattice
@@ -270,7 +320,21 @@ def bind(task: NavTask, scene: Scene, camera: Camera | None = None) -> TaskMap:
     if not (dist > 0).any():
         raise TaskError(f"task {task.name!r}: target {task.target_cell} is unreachable from "
                         f"every cell at {task.alt_m:g} m")
-    return TaskMap(task, blocked, dist)
+    if not 0.0 <= task.min_coverage <= 1.0:
+        raise TaskError(f"task {task.name!r}: min_coverage {task.min_coverage} must be "
+                        "within 0..1")
+    coverage = view_coverage(scene, lattice, task.alt_m, camera)
+    if coverage[task.target_cell] < task.min_coverage:
+        raise TaskError(f"task {task.name!r}: the {task.alt_m:g} m view of target "
+                        f"{task.target_cell} has only {coverage[task.target_cell]:.0%} valid "
+                        f"imagery, under the {task.min_coverage:.0%} required; pick a target "
+                        "inside the imagery")
+    tm = TaskMap(task, blocked, dist, coverage)
+    if not tm.start_cells():
+        raise TaskError(f"task {task.name!r}: no start cell within {task.max_steps} steps of "
+                        f"the target has {task.min_coverage:.0%} valid imagery in its "
+                        f"{task.alt_m:g} m view")
+    return tm
 
 
 @dataclass
@@ -313,9 +377,17 @@ class TaskSet:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-        with os.fdopen(fd, "w") as f:
-            json.dump(self.to_dict(), f, indent=1)
-        os.replace(tmp, path)
+        try:
+            with os.fdopen(fd, "w") as f:
+                json.dump(self.to_dict(), f, indent=1, allow_nan=False)
+            os.replace(tmp, path)
+        except ValueError as err:  # NaN/inf is not JSON
+            Path(tmp).unlink(missing_ok=True)
+            raise TaskError(f"task set for {self.scene_name!r} holds a non-finite number "
+                            f"({err}); nothing written to {path}") from err
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)  # nothing half-written
+            raise
         return path
 
     @classmethod
@@ -336,8 +408,10 @@ class TaskSet:
             tasks = [NavTask.from_dict(t) for t in d["tasks"]]
             camera = Camera(**d.get("camera", {}))
             ts = cls(str(d["scene_name"]), str(d["scene_id"]), tasks, camera, d.get("meta", {}))
-        except (KeyError, TypeError) as err:
+        except KeyError as err:
             raise TaskError(f"task file {path} is malformed: missing {err}") from err
+        except (TypeError, ValueError, AttributeError) as err:
+            raise TaskError(f"task file {path} is malformed: {err}") from err
         if not tasks:
             raise TaskError(f"task file {path} holds no tasks")
         names = [t.name for t in tasks]
@@ -367,13 +441,15 @@ def sample_meta_tasks(
     margin_alt_m: float | None = None,
     obstacles: ObstacleModel = ObstacleModel(),
     max_overlap: float = 0.5,
+    min_coverage: float = DEFAULT_MIN_COVERAGE,
 ) -> TaskSet:
     """Sample ``count`` meta-tasks: square regions of ``size_m`` at ``alt_m``.
 
     Regions are snapped to the scene GSD, kept inside the valid imagery with the
     margin the view from ``margin_alt_m`` (default ``alt_m``) needs, overlap
     each other by at most ``max_overlap`` of their area, and get a random free,
-    reachable target. Reproducible by ``seed``.
+    reachable target whose view at ``alt_m`` has at least ``min_coverage`` valid
+    imagery (starts are held to the same). Reproducible by ``seed``.
     """
     camera = camera or Camera()
     if count < 1:
@@ -408,12 +484,13 @@ def sample_meta_tasks(
             continue
         lattice = Lattice(region, step_m)
         blocked = blocked_cells(scene, lattice, alt_m, obstacles)
-        free = np.argwhere(~blocked)
+        covered = view_coverage(scene, lattice, alt_m, camera) >= min_coverage
+        free = np.argwhere(~blocked & covered)
         if len(free) < 2:
             continue
         target = tuple(int(v) for v in free[rng.integers(len(free))])
         task = NavTask(f"meta-{len(tasks):02d}", "meta", region, step_m, alt_m,
-                       (target[0], target[1]), max_steps, obstacles)
+                       (target[0], target[1]), max_steps, obstacles, min_coverage)
         try:
             bind(task, scene, camera)
         except TaskError:
@@ -422,7 +499,8 @@ def sample_meta_tasks(
         regions.append(region)
     return TaskSet(scene.name, scene.scene_id, tasks, camera,
                    dict(sampler="meta", count=count, size_m=size_m, alt_m=alt_m, step_m=step_m,
-                        seed=seed, margin_alt_m=margin_alt_m or alt_m))
+                        seed=seed, margin_alt_m=margin_alt_m or alt_m,
+                        min_coverage=min_coverage))
 
 
 def whole_scene_tasks(
@@ -436,13 +514,15 @@ def whole_scene_tasks(
     size_m: float | None = None,
     camera: Camera | None = None,
     obstacles: ObstacleModel = ObstacleModel(),
+    min_coverage: float = DEFAULT_MIN_COVERAGE,
 ) -> TaskSet:
     """One task per altitude on the same lattice with the same target (curriculum).
 
     The region defaults to the scene shrunk by the view margin of the highest
     altitude (or a centred square of ``size_m``). The target is a random cell
-    that is free at every altitude and lies in the largest connected free area
-    at the lowest altitude.
+    that is free at every altitude, has at least ``min_coverage`` valid imagery
+    in its view at every altitude, and lies in the largest connected free area at
+    the lowest altitude; starts are held to the same coverage.
     """
     camera = camera or Camera()
     margin = view_margin_m(max(alts_m), camera)
@@ -465,6 +545,7 @@ def whole_scene_tasks(
     blocked_all = np.zeros(lattice.shape, bool)
     for alt in alts_m:
         blocked_all |= blocked_cells(scene, lattice, alt, obstacles)
+        blocked_all |= view_coverage(scene, lattice, alt, camera) < min_coverage
     lowest = blocked_cells(scene, lattice, min(alts_m), obstacles)
     rng = np.random.default_rng(seed)
     # Largest free component at the lowest altitude.
@@ -481,14 +562,17 @@ def whole_scene_tasks(
         raise TaskError(f"every cell of region {region_m} is blocked at {min(alts_m):g} m")
     candidates = np.argwhere(best & ~blocked_all)
     if len(candidates) == 0:
-        raise TaskError(f"no cell of region {region_m} is free at all of {list(alts_m)} m")
+        raise TaskError(f"no cell of region {region_m} is free, with {min_coverage:.0%} valid "
+                        f"imagery in its view, at all of {list(alts_m)} m")
     target = tuple(int(v) for v in candidates[rng.integers(len(candidates))])
     tasks = [NavTask(f"scene@{alt:g}m", "scene", region_m, step_m, float(alt),
-                     (target[0], target[1]), max_steps, obstacles) for alt in alts_m]
+                     (target[0], target[1]), max_steps, obstacles, min_coverage)
+             for alt in alts_m]
     for task in tasks:
         bind(task, scene, camera)
     return TaskSet(scene.name, scene.scene_id, tasks, camera,
-                   dict(sampler="scene", alts_m=list(alts_m), step_m=step_m, seed=seed))
+                   dict(sampler="scene", alts_m=list(alts_m), step_m=step_m, seed=seed,
+                        min_coverage=min_coverage))
 
 
 def _overlap(a: Region, b: Region) -> float:

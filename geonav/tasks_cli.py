@@ -4,6 +4,15 @@ from __future__ import annotations
 
 import argparse
 
+from geonav.cliutil import nonneg_int, positive_float, positive_floats, positive_int
+
+
+def _fraction(text: str) -> float:
+    value = positive_float(text)
+    if value > 1:
+        raise argparse.ArgumentTypeError(f"{text!r} must be within 0..1 (e.g. 0.99)")
+    return value
+
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     tasks = sub.add_parser("tasks", help="make navigation task sets")
@@ -13,16 +22,25 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("scene", help="scene package folder")
     p.add_argument("--kind", choices=["meta", "scene"], default="meta",
                    help="meta: COUNT regions of SIZE m at ALT; scene: one task per altitude")
-    p.add_argument("--count", type=int, default=15, help="meta-tasks to sample (default 15)")
-    p.add_argument("--size", type=float, help="region side in metres (meta default 150; "
+    p.add_argument("--count", type=positive_int, default=15,
+                   help="meta-tasks to sample (default 15)")
+    p.add_argument("--size", type=positive_float, help="region side in metres (meta default 150; "
                    "scene default: the whole scene less the view margin)")
-    p.add_argument("--alt", type=float, default=300.0, help="meta-task altitude (default 300)")
-    p.add_argument("--alts", default="75,45,15", help="whole-scene altitudes (default 75,45,15)")
-    p.add_argument("--step", type=float, default=15.0, help="lattice step in metres (default 15)")
-    p.add_argument("--max-steps", type=int, help="episode cap (default: meta 70, scene 120)")
-    p.add_argument("--obs-size", type=int, default=84, help="camera image side in px")
-    p.add_argument("--fov", type=float, default=90.0, help="camera field of view in degrees")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--alt", type=positive_float, default=300.0,
+                   help="meta-task altitude (default 300)")
+    p.add_argument("--alts", type=positive_floats, default=(75.0, 45.0, 15.0),
+                   help="whole-scene altitudes (default 75,45,15)")
+    p.add_argument("--step", type=positive_float, default=15.0,
+                   help="lattice step in metres (default 15)")
+    p.add_argument("--max-steps", type=positive_int,
+                   help="episode cap (default: meta 70, scene 120)")
+    p.add_argument("--obs-size", type=positive_int, default=84, help="camera image side in px")
+    p.add_argument("--fov", type=positive_float, default=90.0,
+                   help="camera field of view in degrees")
+    p.add_argument("--min-coverage", type=_fraction, default=0.99, metavar="FRACTION",
+                   help="least fraction of valid imagery in the view of a target or start "
+                   "(default 0.99)")
+    p.add_argument("--seed", type=nonneg_int, default=0)
     p.add_argument("-o", "--out", required=True, help="task set JSON to write")
     p.set_defaults(handler=run_make)
 
@@ -37,14 +55,20 @@ def run_make(args: argparse.Namespace) -> int:
     if args.kind == "meta":
         ts = sample_meta_tasks(scene, args.count, size_m=args.size or 150.0, alt_m=args.alt,
                                step_m=args.step, max_steps=args.max_steps or 70, seed=args.seed,
-                               camera=camera)
+                               camera=camera, min_coverage=args.min_coverage)
     else:
-        alts = [float(a) for a in args.alts.split(",")]
+        alts = list(args.alts)
         ts = whole_scene_tasks(scene, alts, step_m=args.step, max_steps=args.max_steps or 120,
-                               seed=args.seed, size_m=args.size, camera=camera)
+                               seed=args.seed, size_m=args.size, camera=camera,
+                               min_coverage=args.min_coverage)
+    from geonav.difficulty import describe, taskset_difficulty
+
+    ts.meta["difficulty"] = diff = taskset_difficulty(ts, scene)
     ts.save(args.out)
     t = ts.tasks[0]
     nx, ny = t.lattice.shape
     print(f"{len(ts)} {args.kind} task(s) on scene {scene.name}: {nx}x{ny} cells of "
           f"{t.step_m:g} m at {', '.join(f'{x.alt_m:g}' for x in ts.tasks[:4])} m -> {args.out}")
+    print(f"chance: {describe(diff)} (exact, DP over the lattice; "
+          f"per task in the JSON's meta.difficulty)")
     return 0

@@ -59,21 +59,25 @@ def draw_scene(
                        ymax - (ys + 0.5) * step * 4 * scene.gsd_m, s=1, c="magenta",
                        alpha=0.25, label=f"surface > {min(footprints_at) - 5:g} m")
     colours = plt.cm.tab20(np.linspace(0, 1, max(1, len(task_list))))
-    for task, colour in zip(task_list, colours):
+    for task, colour in zip(task_list, colours, strict=False):
         x0, y0, x1, y1 = task.region_m
         ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, lw=1.2, ec=colour))
         tgt = task.lattice.center(task.target_cell)
         ax.plot(tgt.x_m, tgt.y_m, marker="*", ms=11, mec="black", mfc=colour)
-        ax.text(x0, y1, f" {task.name}", color=colour, fontsize=7, va="bottom")
+        ax.text(x0, y1, f" {task.name}", color=colour, fontsize=7, va="bottom", clip_on=True)
     centre = (task_list[0].lattice.center(task_list[0].target_cell) if task_list
               else None)
     cx, cy = (centre.x_m, centre.y_m) if centre else ((xmin + xmax) / 2, (ymin + ymax) / 2)
-    for alt, style in zip(footprints_at, ("-", "--", "-.", ":")):
+    for alt, style in zip(footprints_at, ("-", "--", "-.", ":"), strict=False):
         side = camera.footprint_m(alt)
         ax.add_patch(Rectangle((cx - side / 2, cy - side / 2), side, side, fill=False,
                                ls=style, lw=1.0, ec="white"))
-        ax.text(cx - side / 2, cy + side / 2, f"{alt:g} m view", color="white", fontsize=7,
-                va="bottom")
+        # Labels stay inside the axes (a footprint wider than a small scene would put its
+        # label outside, and tight_layout would then squash the picture to make room).
+        lx = min(max(cx - side / 2, xmin), xmax)
+        ly = min(cy + side / 2, ymax)
+        ax.text(lx, ly, f"{alt:g} m view", color="white", fontsize=7,
+                va="bottom" if ly < ymax else "top", clip_on=True)
     for task, cells, label in tracks:
         pts = np.array([[task.lattice.center(c).x_m, task.lattice.center(c).y_m] for c in cells])
         if len(pts):

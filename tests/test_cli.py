@@ -47,3 +47,32 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path):
 def test_missing_scene_and_tasks_errors(tmp_path, capsys):
     assert main(["tasks", "make", str(tmp_path / "nope"), "-o", str(tmp_path / "t.json")]) == 2
     assert "does not exist or is not a folder" in capsys.readouterr().err
+
+
+def test_parser_errors_are_one_line_and_negative_values_parse(capsys):
+    import pytest
+
+    with pytest.raises(SystemExit) as info:
+        main(["tiles", "ingest", "x", "--name", "A", "--out", "o", "--bbox", "-1,2"])
+    assert info.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--bbox" in err and "west,south,east,north" in err
+    # a western-hemisphere bbox is a value, not an option: the error is about the file
+    assert main(["tiles", "ingest", "missing.tif", "--name", "A", "--out", "o",
+                 "--bbox", "-122.45,37.75,-122.40,37.80"]) == 2
+    assert "missing.tif does not exist" in capsys.readouterr().err
+
+
+def test_nothing_imports_the_root_cli():
+    import ast
+    from pathlib import Path
+
+    import geonav
+
+    root = Path(geonav.__file__).parent
+    for path in root.rglob("*.py"):
+        if path.name == "cli.py" and path.parent == root:
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom):
+                assert node.module != "geonav.cli", path

@@ -1,7 +1,9 @@
+from pathlib import Path
+
 import numpy as np
 import pytest
 
-from geonav.experiments.convergence import (
+from geonav.convergence import (
     ConvergenceCriterion,
     episodes_to_convergence,
     moving_success_rate,
@@ -53,3 +55,64 @@ def test_summary_marks_censoring():
 def test_bad_criterion():
     with pytest.raises(ValueError):
         ConvergenceCriterion(window=10, threshold=0.8, hold=0.9)
+
+
+# -- issue 10: the evaluation rule, the noise check, verdicts ------------------------------
+
+def test_stationary_stream_at_hold_never_meets_the_paper_rule():
+    from geonav.convergence import stationary_pass_rate
+
+    paper = ConvergenceCriterion(500, 0.95, 0.90)
+    assert stationary_pass_rate(paper, 20_000, paper.hold, sims=100, seed=0) < 0.05
+    # the old quick rule is met by a non-learner most of the time (issue 10: 87 %)
+    old = ConvergenceCriterion(50, 0.8, 0.7)
+    assert stationary_pass_rate(old, 600, 0.72, sims=200, seed=0) > 0.8
+
+
+def test_noise_check_names_the_numbers():
+    from geonav.convergence import noise_check
+
+    reasons = noise_check(ConvergenceCriterion(50, 0.8, 0.7), 600, random_walk_sr=0.7)
+    assert len(reasons) == 2  # (a), and (b) for the training threshold (eval's is 0.95)
+    assert "W = 50" in reasons[0] and "600 episodes" in reasons[0]
+    assert "threshold 0.8 " in reasons[1] and "0.700" in reasons[1] and "0.850" in reasons[1]
+    assert noise_check(ConvergenceCriterion(100, 0.95, 0.8), 1000, random_walk_sr=0.39) == []
+
+
+def test_config_check_refuses_the_old_quick_rule():
+    import tomllib
+
+    from geonav.errors import ConfigError
+    from geonav.experiments.config import check_noise, load_config, parse_config
+
+    data = tomllib.loads(Path("configs/quick.toml").read_text())
+    data["convergence"] = {"window": 50, "threshold": 0.8, "hold": 0.7}
+    for st in data["stages"].values():
+        st["episodes"] = 600
+    with pytest.raises(ConfigError, match="cannot tell learning from noise"):
+        parse_config(data, "old-quick.toml")
+    cfg = load_config("configs/quick.toml")
+    with pytest.raises(ConfigError, match="random-walk success 0.990"):
+        check_noise(cfg, {k: 0.99 for k in cfg.tasks})
+
+
+def test_eval_convergence_needs_two_consecutive_evaluations():
+    from geonav.convergence import eval_convergence
+
+    r = eval_convergence([100, 200, 300, 400, 500], [0.5, 0.96, 0.9, 0.97, 1.0], 600)
+    assert r.episodes == 400 and not r.censored and r.evaluations == 5
+    r = eval_convergence([100, 200], [0.5, 0.99], 250)
+    assert r.censored and r.value() == 250
+
+
+def test_verdict_says_no_effect_for_overlapping_ranges():
+    from geonav.convergence import ConvergenceResult
+    from geonav.experiments.report import verdict
+
+    a = [ConvergenceResult(e, 600) for e in (300, 420, 500)]
+    b = [ConvergenceResult(e, 600) for e in (250, 350, 380)]
+    assert verdict("scratch", a, "transfer", b).startswith("no effect shown at this budget")
+    b = [ConvergenceResult(e, 600) for e in (100, 150, 200)]
+    assert verdict("scratch", a, "transfer", b).startswith("effect shown: transfer")
+    censored = [ConvergenceResult(None, 600)] * 3
+    assert "neither converged" in verdict("scratch", censored, "transfer", censored)

@@ -20,10 +20,11 @@ name = "tiny"
 seeds = [0, 1]
 eval_starts = 8
 
-[convergence]
-window = 10
-threshold = 0.9
-hold = 0.8
+[convergence]          # budgets below 2 W: never met, so the noise check accepts it
+window = 100
+threshold = 0.97
+hold = 0.9
+eval_threshold = 0.97
 
 [scenes.A]
 synthetic = "residential"
@@ -124,13 +125,19 @@ def test_tiny_experiment_end_to_end(tmp_path):
     for method in ("scratch", "transfer"):
         rec = comp["methods"][method]
         assert rec["convergence"]["n"] == 2
-        assert 0.0 <= rec["final_success"] <= 1.0
+        assert 0.0 <= rec["final_greedy_sr"] <= 1.0 and 0.0 <= rec["final_sampled_sr"] <= 1.0
+        assert rec["eval_convergence"]["n"] == 2
         assert len(rec["runs"]) == 2 and all(r["episodes"] == 40 for r in rec["runs"])
     # transfer started from pre's final weights, scratch did not
     tr = json.loads((root / "units/transfer/seed-0/config.json").read_text())
     assert tr["algorithm"] == "a3c"
     result = json.loads((root / "units/transfer/seed-1/result.json").read_text())
-    assert Path(result["checkpoint"]).exists() and result["eval"]["episodes"] == 8
+    assert Path(result["checkpoint"]).exists() and result["eval"]["starts"] == 8
+    assert 0.0 < result["eval"]["random_walk_sr"] < 1.0 and "zero_shot" in result["eval"]
+    assert "Chance on this task" in report and "Verdict (greedy-evaluation rule)" in report
+    assert "IQM" in report and "stratified-bootstrap" in report
+    assert "### Starting stage `pre`" in report
+    assert (root / "units/transfer/seed-0/eval.csv").read_text().startswith("episode,")
     # the transferred policy flew its task through the MAVLink emulator, and landed
     assert "## Flight (MAVLink emulator)" in report
     flight = json.loads((root / "flight" / "summary.json").read_text())

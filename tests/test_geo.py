@@ -68,3 +68,14 @@ def test_bad_lonlat_and_crs():
 def test_feet_unit_factor():
     assert crs_unit_factor(CRS.from_epsg(2227)) == pytest.approx(0.3048006096)  # US survey ft
     assert crs_unit_factor(CRS.from_epsg(32631)) == 1.0
+
+
+@pytest.mark.parametrize("values", [(float("nan"), 10.0, 0.0), (4.0, float("inf"), 0.0),
+                                    (4.0, 51.0, float("nan")), ("4", 51.0, 0.0),
+                                    (True, 51.0, 0.0)])
+def test_lonlat_refuses_non_finite_and_non_numbers(values):
+    from geonav.errors import GeoError
+    from geonav.geo import LonLat
+
+    with pytest.raises(GeoError):
+        LonLat(*values)

@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from geonav.camera import Camera
+from geonav.convergence import ConvergenceCriterion
 from geonav.env import GeoNavEnv
-from geonav.experiments.convergence import ConvergenceCriterion
 from geonav.policy.callbacks import Callback
 from geonav.policy.encoders import build_frozen_encoder
 from geonav.policy.evaluation import RandomAgent, eval_starts, evaluate
@@ -118,7 +118,8 @@ def test_curriculum_advances_on_criterion_and_budget_and_decays_the_teacher(scen
     easy = ConvergenceCriterion(window=2, threshold=0.5, hold=0.5)  # holds within the budget
     res = run_curriculum(f, None, "isar", ISARConfig(workers=0, seed=0),
                          CurriculumConfig(stage_episodes=8, max_steps=120), out_dir=tmp_path / "a",
-                         criterion=easy, net_cfg=tiny_net(), callbacks=[kls])
+                         criterion=easy, net_cfg=tiny_net(), callbacks=[kls],
+                         engine="async")  # lambda by record order: one worker's episodes
     assert [s.alt_m for s in res.stages] == [75.0, 45.0, 15.0]
     assert all(s.converged_at is not None and s.episodes < 8 for s in res.stages)
     assert res.stages[0].teacher is None

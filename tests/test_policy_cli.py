@@ -47,14 +47,21 @@ def test_train_resume_and_eval(scene_files, tmp_path, capsys):
 
     out = tmp_path / "eval.json"
     args = _parse(["eval", str(run / "checkpoints/final.pt"), "--scene", str(scene),
-                   "--tasks", str(tasks), "--episodes", "4", "--greedy", "--json", str(out),
+                   "--tasks", str(tasks), "--max-starts", "4", "--json", str(out),
                    "--no-progress"])
     capsys.readouterr()
     assert args.handler(args) == 0
-    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    assert summary["mode"] == "greedy" and summary["episodes"] == 4
-    assert 0.0 <= summary["success_rate"] <= 1.0
-    assert len(json.loads(out.read_text())["per_episode"]) == 4
+    captured = capsys.readouterr()
+    summary = json.loads(captured.out.strip().splitlines()[-1])
+    assert summary["starts"] == 4
+    for mode in ("greedy", "sampled"):
+        assert 0.0 <= summary[mode]["sr"] <= 1.0 and 0.0 <= summary[mode]["spl"] <= 1.0
+    assert 0.0 < summary["random_walk_sr"] < 1.0 and "random walk" in captured.err
+    per = json.loads(out.read_text())["per_episode"]
+    assert len(per["greedy"]) == 4 and len(per["sampled"]) == 4
+    # every training run ends with a greedy + sampled evaluation row in eval.csv
+    rows = (run / "eval.csv").read_text().splitlines()
+    assert rows[0].startswith("episode,env_steps") and rows[-1].startswith("5,")
 
 
 def test_bad_input_is_one_clear_error(scene_files, tmp_path, capsys):
@@ -71,3 +78,45 @@ def test_bad_input_is_one_clear_error(scene_files, tmp_path, capsys):
                      str(tmp_path / "r"), "--config", str(toml)])
     assert code == 2 and "learning_rate" in capsys.readouterr().err
     assert not (tmp_path / "r").exists()
+
+
+def test_step_budget_running_env_steps_and_tensorboard(scene_files, tmp_path, capsys):
+    """Issue 15: --total-steps beside --episodes, a running env_steps column, and
+    --tensorboard DIR under SB3's tag names."""
+    import csv
+
+    pytest.importorskip("tensorboard", reason="the tensorboard extra is not installed")
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    scene, tasks = scene_files
+    run, tb = tmp_path / "run", tmp_path / "tb"
+    args = _parse(["train", "--algo", "a3c", "--engine", "async", "--scene", str(scene),
+                   "--tasks", str(tasks), "--altitude", "75", "--workers", "0", "--out",
+                   str(run), "--obs-size", "32", "--encoder", "random", "--no-progress",
+                   "--episodes", "1000", "--total-steps", "60", "--tensorboard", str(tb)])
+    assert args.handler(args) == 0
+    rows = list(csv.DictReader(open(run / "metrics.csv")))
+    steps = [int(r["env_steps"]) for r in rows]
+    lengths = [int(r["length"]) for r in rows]
+    assert steps == [sum(lengths[:i + 1]) for i in range(len(lengths))]  # a running total
+    assert steps[-1] >= 60 and steps[-2] < 60 and len(rows) < 1000  # stopped by the budget
+    assert "trained" in capsys.readouterr().out
+    acc = EventAccumulator(str(next(tb.rglob("events.out.tfevents*")).parent))
+    acc.Reload()
+    tags = acc.Tags()["scalars"]
+    assert "rollout/success_rate" in tags and "rollout/ep_len_mean" in tags
+    assert max(e.step for e in acc.Scalars("rollout/ep_len_mean")) <= steps[-1]
+
+
+def test_progress_is_lines_when_not_a_terminal(scene_files, tmp_path, capsys, monkeypatch):
+    """Issue 15: a redirected run prints progress lines (no carriage returns)."""
+    monkeypatch.setenv("GEONAV_PROGRESS_S", "0")
+    scene, tasks = scene_files
+    args = _parse(["train", "--algo", "a3c", "--engine", "async", "--scene", str(scene),
+                   "--tasks", str(tasks), "--altitude", "75", "--workers", "0", "--out",
+                   str(tmp_path / "run"), "--obs-size", "32", "--encoder", "random",
+                   "--episodes", "3"])
+    assert args.handler(args) == 0
+    err = capsys.readouterr().err
+    assert "training: episode 3/3" in err and "\r" not in err
+    assert "evaluation at episode 3: greedy SR" in err

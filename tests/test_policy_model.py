@@ -31,7 +31,7 @@ def test_shapes_and_state():
 
 def test_savn_init():
     torch.manual_seed(0)
-    model = ActorCritic(NetConfig(obs_size_px=32))
+    model = ActorCritic(NetConfig(obs_size_px=32, init="savn", input_norm="none"))
     assert torch.allclose(model.actor.weight.norm(dim=1), torch.full((4,), 0.01), atol=1e-6)
     assert torch.allclose(model.critic.weight.norm(dim=1), torch.ones(1), atol=1e-6)
     for b in (model.actor.bias, model.critic.bias, model.lstm.bias_ih, model.fc.bias):
@@ -40,6 +40,32 @@ def test_savn_init():
     obs, tgt, st = _inputs(model)
     logits, _, _ = model(obs, tgt, st)
     assert torch.softmax(logits, -1).sub(0.25).abs().max() < 0.02
+
+
+def test_default_init_keeps_the_signal_and_depends_on_the_view():
+    """Issue 10: orthogonal ReLU-gain init, centred inputs and an actor of norm 1, so the
+    fresh policy's logits already differ between views (the SAVN init's do not)."""
+    torch.manual_seed(0)
+    model = ActorCritic(NetConfig(obs_size_px=32))
+    assert torch.allclose(model.actor.weight.norm(dim=1), torch.ones(4), atol=1e-5)
+    for b in (model.actor.bias, model.critic.bias, model.lstm.bias_ih, model.fc.bias):
+        assert torch.count_nonzero(b) == 0
+    w = model.fc.weight
+    assert torch.allclose(w @ w.T, 2.0 * torch.eye(w.shape[0]), atol=1e-4)  # orthogonal, gain^2
+    g = torch.Generator().manual_seed(1)
+    obs = torch.randint(0, 256, (1, 6, 32, 32, 3), dtype=torch.uint8, generator=g)
+    tgt = torch.randint(0, 256, (6, 32, 32, 3), dtype=torch.uint8, generator=g)
+    spread = {}
+    for init, norm in (("orthogonal", "center"), ("savn", "none")):
+        torch.manual_seed(0)
+        m = ActorCritic(NetConfig(obs_size_px=32, init=init, input_norm=norm))
+        logits, _, _ = m(obs, tgt, m.initial_state(6))
+        spread[init] = float(logits[0].detach().std(0).mean())
+    assert spread["orthogonal"] > 0.05 > 100 * spread["savn"]
+    with pytest.raises(ConfigError):
+        NetConfig(init="xavier")
+    with pytest.raises(ConfigError):
+        NetConfig(input_norm="imagenet")
 
 
 def test_steps_one_by_one_equal_one_sequence_call():

@@ -127,3 +127,46 @@ def test_taskset_file_errors(tmp_path):
     (tmp_path / "old.json").write_text('{"schema_version": 0}')
     with pytest.raises(TaskError, match="schema_version"):
         TaskSet.load(tmp_path / "old.json")
+
+
+def test_view_coverage_counts_masked_and_outside_pixels():
+    from geonav.tasks import view_coverage
+
+    s = textured_scene(200.0, 0.5, seed=3, towers=False)
+    s.mask[:, : s.width // 2] = False  # west half has no imagery
+    cam = Camera()
+    lat = Lattice((-60.0, -30.0, 60.0, 30.0), 15.0)
+    cov = view_coverage(s, lat, 15.0, cam)  # 30 m views
+    xs, _ = lat.centers()
+    assert np.allclose(cov[xs > 15.0], 1.0) and np.allclose(cov[xs < -15.0], 0.0)
+    # a view centred 7.5 m east of the mask edge: 22.5 of its 30 m are valid
+    assert cov[xs == 7.5] == pytest.approx(0.75, abs=0.01)
+    # at 300 m the 600 m view reaches far outside the 200 m scene
+    assert cov.max() <= 1.0 and view_coverage(s, lat, 300.0, cam).max() < 0.11
+
+
+def test_targets_and_starts_only_where_the_view_is_covered():
+    s = textured_scene(400.0, 0.5, seed=4, towers=False)
+    s.mask[:, : int(s.width * 0.45)] = False  # 45 % of the scene is masked
+    ts = whole_scene_tasks(s, (75.0, 45.0, 15.0), step_m=15.0, seed=0)
+    from geonav.tasks import view_coverage
+
+    cam = ts.camera
+    for task in ts.tasks:
+        tm = bind(task, s, cam)
+        cov = view_coverage(s, task.lattice, task.alt_m, cam)
+        assert cov[task.target_cell] >= 0.99
+        starts = tm.start_cells()
+        assert starts and all(cov[c] >= 0.99 for c in starts)
+        assert (cov < 0.99).any()  # some cells are excluded
+    assert ts.tasks[0].min_coverage == 0.99
+    meta = sample_meta_tasks(textured_scene(900.0, 1.0, seed=5, towers=False), 2, seed=1)
+    assert all(t.min_coverage == 0.99 for t in meta.tasks)
+    bad = NavTask("b", "scene", ts.tasks[0].region_m, 15.0, 15.0, (0, 0), 120)
+    with pytest.raises(TaskError, match="valid imagery"):
+        bind(bad, s, cam)
+    # round trip keeps the threshold; old files without it get the default
+    d = ts.tasks[0].to_dict()
+    assert NavTask.from_dict(d).min_coverage == 0.99
+    d.pop("min_coverage")
+    assert NavTask.from_dict(d).min_coverage == 0.99

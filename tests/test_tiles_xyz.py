@@ -257,7 +257,8 @@ def test_info_counts_meta_tasks_and_preview_draws_tasks(tmp_path, capsys):
     png = tmp_path / "p.png"
     assert main(["tiles", "preview", str(tmp_path / "big"), "--tasks",
                  str(tmp_path / "tasks.json"), "-o", str(png)]) == 0
-    assert "2 tasks" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "2 tasks" in out and "random-walk success 0." in out
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert main(["tiles", "info", str(tmp_path / "big")]) == 0
     text = capsys.readouterr().out

@@ -54,11 +54,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from geonav.convergence import ConvergenceCriterion
 from geonav.errors import ConfigError
-from geonav.experiments.convergence import ConvergenceCriterion
 
 STAGE_MODES = ("train", "meta-train", "curriculum")
-ALGOS = ("a3c", "savn", "isar")
+ALGOS = ("a3c", "savn", "isar", "ppo")
 
 
 @dataclass(frozen=True)
@@ -130,7 +130,9 @@ class StageSpec:
         episodes: episode budget of the stage.
         init: a stage whose final policy this one starts from (same seed).
         workers: worker processes inside the unit (0 = single process).
-        options: algorithm options passed through (N, K, lr, encoder, ...).
+        options: algorithm options passed through (N, K, lr, encoder, ...), and the
+            trainer engine: ``engine`` ("batched", the default, or "async"), ``batch``
+            (slots of the batched engine, default 16) and ``device`` ("cpu" or "cuda").
     """
 
     name: str
@@ -162,6 +164,31 @@ class CompareSpec:
     count_parents: bool = False
 
 
+BACKENDS = ("local", "ray")
+
+
+@dataclass(frozen=True)
+class BackendSpec:
+    """Where the units run (``[backend]``; ``--backend``/``--address``/``--jobs`` override).
+
+    Attributes:
+        kind: "local" (spawned processes on this machine) or "ray" (Ray tasks).
+        jobs: concurrent units (local: default 2 on the command line; ray: default the
+            cluster's CPUs / cpus_per_unit).
+        address: Ray cluster address: "auto", "ray://HOST:10001" or "HOST:6379".
+        max_retries: times a unit whose worker died is rerun from its last checkpoint.
+        cpus_per_unit: CPUs a Ray task reserves (default: max(1, the stage's workers)).
+        gpus_per_unit: GPUs a Ray task reserves (fractions allowed).
+    """
+
+    kind: str = "local"
+    jobs: int | None = None
+    address: str | None = None
+    max_retries: int = 2
+    cpus_per_unit: float | None = None
+    gpus_per_unit: float = 0.0
+
+
 @dataclass(frozen=True)
 class ExperimentConfig:
     """A whole experiment (see the module docstring)."""
@@ -176,6 +203,7 @@ class ExperimentConfig:
     eval_starts: int = 100
     flight: dict[str, Any] = field(default_factory=dict)
     source: str = ""
+    backend: BackendSpec = field(default_factory=BackendSpec)
 
     def parts(self) -> list[str]:
         return [c.part or c.name for c in self.compare]
@@ -234,10 +262,22 @@ def _build(cls: type, name: str, d: Any, where: str) -> Any:
 def parse_config(data: dict[str, Any], source: str = "") -> ExperimentConfig:
     """Validate a parsed TOML document into an :class:`ExperimentConfig`."""
     known = {"name", "seeds", "convergence", "scenes", "tasks", "stages", "compare",
-             "eval_starts", "flight"}
+             "eval_starts", "flight", "backend"}
     unknown = sorted(set(data) - known)
     if unknown:
         raise ConfigError(f"{source}: unknown top-level key(s) {unknown}; known: {sorted(known)}")
+    for key in ("convergence", "scenes", "tasks", "stages", "flight"):
+        if key in data and not isinstance(data[key], dict):
+            raise ConfigError(f"{source}: [{key}] must be a table, got "
+                              f"{type(data[key]).__name__} {data[key]!r}")
+    for key in ("scenes", "tasks", "stages"):
+        for name, value in data.get(key, {}).items():
+            if not isinstance(value, dict):
+                raise ConfigError(f"{source}: [{key}.{name}] must be a table, got "
+                                  f"{type(value).__name__} {value!r}")
+    compare = data.get("compare", [])
+    if not isinstance(compare, list) or not all(isinstance(c, dict) for c in compare):
+        raise ConfigError(f"{source}: compare must be [[compare]] tables")
     try:
         conv = ConvergenceCriterion(**data.get("convergence", {}))
     except (TypeError, ValueError) as err:
@@ -260,10 +300,37 @@ def parse_config(data: dict[str, Any], source: str = "") -> ExperimentConfig:
         seeds=tuple(int(s) for s in data.get("seeds", [0, 1, 2])),
         convergence=conv, scenes=scenes, tasks=tasks, stages=stages, compare=compare,
         eval_starts=int(data.get("eval_starts", 100)), flight=dict(data.get("flight", {})),
-        source=source,
+        source=source, backend=_backend(data.get("backend", {})),
     )
     _check(cfg)
     return cfg
+
+
+def _backend(d: Any) -> BackendSpec:
+    if isinstance(d, BackendSpec):
+        return d
+    if not isinstance(d, dict):
+        raise ConfigError("[backend] must be a table")
+    known = {f.name for f in dataclasses.fields(BackendSpec)}
+    unknown = sorted(set(d) - known)
+    if unknown:
+        raise ConfigError(f"[backend]: unknown key(s) {unknown}; known: {sorted(known)}")
+    types: dict[str, tuple[type, ...]] = {
+        "kind": (str,), "jobs": (int,), "address": (str,), "max_retries": (int,),
+        "cpus_per_unit": (int, float), "gpus_per_unit": (int, float)}
+    for key, value in d.items():
+        if isinstance(value, bool) or not isinstance(value, types[key]):
+            raise ConfigError(f"[backend] {key} = {value!r}: expected "
+                              f"{' or '.join(t.__name__ for t in types[key])}")
+    spec = BackendSpec(**d)
+    if spec.kind not in BACKENDS:
+        raise ConfigError(f"[backend] kind = {spec.kind!r}: use one of {BACKENDS}")
+    if spec.max_retries < 0 or (spec.jobs is not None and spec.jobs < 0):
+        raise ConfigError("[backend] max_retries and jobs must be >= 0")
+    if spec.kind == "local" and spec.gpus_per_unit:
+        raise ConfigError("[backend] gpus_per_unit needs kind = \"ray\" (local units use "
+                          "whatever devices their stage options name)")
+    return spec
 
 
 def _check(cfg: ExperimentConfig) -> None:
@@ -304,6 +371,29 @@ def _check(cfg: ExperimentConfig) -> None:
         missing = [m for m in c.methods if m not in cfg.stages]
         if missing:
             raise ConfigError(f"[[compare]] {c.name!r}: methods {missing} are not stages")
+    check_noise(cfg)
+
+
+def check_noise(cfg: ExperimentConfig, random_walk_sr: dict[str, float] | None = None) -> None:
+    """Refuse a convergence rule that a policy which is not improving could meet (issue 10,
+    ALGORITHMS.md (f)): (a) for each compared stage's budget, by seeded simulation of a
+    stationary success stream at p = hold; (b) with ``random_walk_sr`` (task-set key ->
+    exact random-walk SR), thresholds below chance plus half the gap to 1."""
+    from geonav.convergence import noise_check
+
+    compared = {m for c in cfg.compare for m in c.methods}
+    seen: set[tuple[int, float | None]] = set()
+    for key in sorted(compared):
+        st = cfg.stages[key]
+        rw = None if random_walk_sr is None else random_walk_sr.get(st.tasks)
+        if (st.episodes, rw) in seen:
+            continue
+        seen.add((st.episodes, rw))
+        reasons = noise_check(cfg.convergence, st.episodes, rw)
+        if reasons:
+            raise ConfigError(f"[convergence] cannot tell learning from noise for stage "
+                              f"{key!r} (tasks {st.tasks!r}, budget {st.episodes}): "
+                              + "; ".join(reasons))
 
 
 def load_config(path: str | Path, overrides: dict[str, Any] | None = None) -> ExperimentConfig:

@@ -10,15 +10,17 @@ from typing import Any
 
 import numpy as np
 
-from geonav.experiments.config import CompareSpec, ExperimentConfig
-from geonav.experiments.convergence import (
+from geonav.convergence import (
     ConvergenceCriterion,
     ConvergenceResult,
+    EvalConvergence,
     area_under_curve,
     episodes_to_convergence,
+    eval_convergence,
     moving_success_rate,
     summarize,
 )
+from geonav.experiments.config import CompareSpec, ExperimentConfig
 from geonav.experiments.runner import RESULT, Unit, unit_dir
 
 
@@ -32,6 +34,38 @@ def read_success(metrics_csv: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray,
             length.append(float(row.get("length") or "nan"))
             short.append(float(row.get("shortest_path") or "nan"))
     return np.array(succ, bool), np.array(wall), np.array(length), np.array(short)
+
+
+def read_evals(eval_csv: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(training episode, greedy SR over all starts) of a run's periodic evaluations."""
+    ep, sr = [], []
+    if eval_csv.exists():
+        with open(eval_csv, newline="") as f:
+            for row in csv.DictReader(f):
+                ep.append(int(float(row["episode"])))
+                sr.append(float(row["greedy_sr"]))
+    return np.array(ep, int), np.array(sr)
+
+
+def verdict(a: str, ra: list[ConvergenceResult | EvalConvergence], b: str,
+            rb: list[ConvergenceResult | EvalConvergence]) -> str:
+    """"effect shown" only when the seed ranges of e* (censored runs at their budget, a
+    lower bound) do not overlap; otherwise "no effect shown at this budget"."""
+    if not ra or not rb:
+        return "no effect shown (runs missing)"
+    va, vb = [r.value() for r in ra], [r.value() for r in rb]
+    if all(r.censored for r in ra) and all(r.censored for r in rb):
+        return "no effect shown at this budget (neither converged)"
+    if max(vb) < min(va) and not all(r.censored for r in rb):
+        return (f"effect shown: {b} converges in fewer episodes than {a} (seed ranges "
+                f"{min(vb):.0f}-{max(vb):.0f} vs {min(va):.0f}-{max(va):.0f}"
+                f"{'+' if any(r.censored for r in ra) else ''} do not overlap)")
+    if max(va) < min(vb) and not all(r.censored for r in ra):
+        return (f"effect shown: {a} converges in fewer episodes than {b} (seed ranges "
+                f"{min(va):.0f}-{max(va):.0f} vs {min(vb):.0f}-{max(vb):.0f}"
+                f"{'+' if any(r.censored for r in rb) else ''} do not overlap)")
+    return (f"no effect shown at this budget (seed ranges {min(va):.0f}-{max(va):.0f} and "
+            f"{min(vb):.0f}-{max(vb):.0f} overlap)")
 
 
 def unit_stats(root: Path, unit: Unit, criterion: ConvergenceCriterion) -> dict[str, Any] | None:
@@ -53,14 +87,40 @@ def unit_stats(root: Path, unit: Unit, criterion: ConvergenceCriterion) -> dict[
     ok = success[tail]
     ratio = float(np.nanmean(length[tail][ok] / np.maximum(short[tail][ok], 1))) if ok.any() \
         else math.nan
+    eval_path = Path(result.get("evals") or metrics.with_name("eval.csv"))
+    eval_ep, eval_sr = read_evals(eval_path)
+    eval_conv = eval_convergence(eval_ep, eval_sr, int(len(success)), criterion.eval_threshold)
     return dict(
-        seed=unit.seed, conv=conv, episodes=int(len(success)), wall_to_convergence_s=wall_to,
+        seed=unit.seed, conv=conv, eval_conv=eval_conv, eval_episodes=eval_ep,
+        eval_greedy_sr=eval_sr, episodes=int(len(success)), wall_to_convergence_s=wall_to,
         wall_total_s=float(wall[-1]) if len(wall) else None,
         auc=area_under_curve(success, criterion.window),
         length_over_shortest=ratio,
         eval=result.get("eval", {}), success=success,
         trajectories=result.get("trajectories", []), result=result,
     )
+
+
+def _seed_stats(results: list[Any]) -> dict[str, Any] | None:
+    """IQM and bootstrap CIs of e* over seeds (geonav.experiments.stats; None without the
+    ``stats`` extra or runs)."""
+    if not results:
+        return None
+    from geonav.errors import MissingExtra
+    from geonav.experiments.stats import seed_summary
+
+    try:
+        return seed_summary([r.value() for r in results], [r.censored for r in results])
+    except MissingExtra:
+        return None
+
+
+def _fmt_iqm(st: dict[str, Any] | None) -> str:
+    if not st or st.get("iqm") is None:
+        return ""
+    lo, hi = st["iqm_ci"]
+    plus = "+" if st.get("iqm_censored") else ""
+    return f"; IQM {st['iqm']:.0f}{plus} (95% CI {lo:.0f}-{hi:.0f})"
 
 
 def _fmt_conv(s: dict[str, Any]) -> str:
@@ -81,15 +141,19 @@ def write_report(cfg: ExperimentConfig, root: Path, stage_keys: list[str],
     """Write summary.json, report.md and the PNGs; returns the summary."""
     crit = cfg.convergence
     lines = [f"# Experiment `{cfg.name}`", "",
-             f"Config: `{cfg.source}`; seeds {list(cfg.seeds)}; convergence: SR over the last "
-             f"W = {crit.window} episodes reaches {crit.threshold} and stays >= {crit.hold} for "
-             f"the next W (ALGORITHMS.md (f)). `+` marks a censored median (at least half the "
-             "runs never converged within their budget; their budget counts as a lower bound).",
-             ""]
+             f"Config: `{cfg.source}`; seeds {list(cfg.seeds)}. Two convergence rules "
+             f"(ALGORITHMS.md (f)), identical for every method: **training SR** over the last "
+             f"W = {crit.window} episodes reaches {crit.threshold:g} and stays >= {crit.hold:g} "
+             f"for the next W (the paper's e*), and **greedy evaluation**: the first periodic "
+             f"evaluation at which greedy SR over all start cells is >= "
+             f"{crit.eval_threshold:g} and stays so at the next one. The config passed the "
+             "noise check (a policy that is not improving meets neither rule). A verdict says "
+             "\"effect shown\" only when the seed ranges of e* do not overlap.", ""]
     summary: dict[str, Any] = {"name": cfg.name, "convergence": vars(crit) if hasattr(
         crit, "__dict__") else {}, "comparisons": [], "failed": {u.key: m for u, m in
                                                                  failed.items()}}
-    summary["convergence"] = dict(window=crit.window, threshold=crit.threshold, hold=crit.hold)
+    summary["convergence"] = dict(window=crit.window, threshold=crit.threshold, hold=crit.hold,
+                                  eval_threshold=crit.eval_threshold)
     stats_by_stage: dict[str, list[dict[str, Any]]] = {}
     for key in stage_keys:
         stats_by_stage[key] = [s for seed in cfg.seeds
@@ -112,7 +176,7 @@ def write_report(cfg: ExperimentConfig, root: Path, stage_keys: list[str],
 
 
 def _json_default(v: Any) -> Any:
-    if isinstance(v, ConvergenceResult):
+    if isinstance(v, (ConvergenceResult, EvalConvergence)):
         return dict(episodes=v.episodes, budget=v.budget, censored=v.censored)
     if isinstance(v, np.ndarray):
         return v.tolist()
@@ -121,70 +185,160 @@ def _json_default(v: Any) -> Any:
     raise TypeError(type(v))
 
 
+def _ratio_text(a: str, b: str, med: dict[str, float], cens: dict[str, bool],
+                comp: CompareSpec, rule: str) -> tuple[str, float | None]:
+    if a not in med or b not in med:
+        return f"Ratio {b} / {a} ({rule}): n/a.", None
+    ours = med[b] / med[a] if med[a] else math.nan
+    if cens[a] and cens[b]:
+        text = f"Ratio {b} / {a} ({rule}): **n/a**, neither converged within its budget"
+        value = None
+    elif cens[a]:
+        text, value = f"Ratio {b} / {a} ({rule}): **<= {ours:.2f}** ({a} censored)", ours
+    elif cens[b]:
+        text, value = f"Ratio {b} / {a} ({rule}): **>= {ours:.2f}** ({b} censored)", ours
+    else:
+        text, value = f"Ratio {b} / {a} ({rule}): **{ours:.2f}**", ours
+    if a in comp.paper and b in comp.paper:
+        text += (f"; the paper's: {comp.paper[b] / comp.paper[a]:.2f} "
+                 f"({comp.paper[b]:g} vs {comp.paper[a]:g} episodes)")
+    return text + ".", value
+
+
+def _f(v: float | None, spec: str = ".2f") -> str:
+    return "n/a" if v is None or (isinstance(v, float) and math.isnan(v)) else format(v, spec)
+
+
 def _comparison(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
                 stats_by_stage: dict[str, list[dict[str, Any]]], summary: dict[str, Any],
                 scenes: dict[str, str]) -> list[str]:
-    lines = [f"## {comp.name}", "",
-             "| method | episodes to convergence, median [min-max] | censored | "
-             "wall time to convergence (median) | final success | final SPL | "
-             "length / shortest (last W) | SR AUC |", "|---|---|---|---|---|---|---|---|"]
+    crit = cfg.convergence
+    lines = [f"## {comp.name}", ""]
     record: dict[str, Any] = {"name": comp.name, "methods": {}}
-    medians: dict[str, float] = {}
-    censored: dict[str, bool] = {}
+    chance = next((s["eval"] for m in comp.methods for s in stats_by_stage[m]
+                   if "random_walk_sr" in s["eval"]), {})
+    if chance:
+        lines += [f"Chance on this task (exact, DP over the lattice): a uniform random walk "
+                  f"succeeds **{chance['random_walk_sr']:.3f}** of the time from the start "
+                  f"cells, the best state-blind action bias {chance.get('blind_sr', math.nan):.3f};"
+                  f" mean shortest path {chance.get('mean_shortest_path', math.nan):.1f} steps.",
+                  ""]
+        record["random_walk_sr"] = chance["random_walk_sr"]
+        record["blind_sr"] = chance.get("blind_sr")
+    lines += [
+        f"| method | e* training SR (W = {crit.window}, {crit.threshold:g} / {crit.hold:g}) | "
+        f"e* greedy eval (>= {crit.eval_threshold:g} twice) | censored (train / eval) | "
+        "final greedy SR / SPL | final sampled SR / SPL | zero-shot greedy SR | "
+        "length / shortest (greedy) | wall time to e* (train) |",
+        "|---|---|---|---|---|---|---|---|---|"]
+    med: dict[str, dict[str, float]] = {"train": {}, "eval": {}}
+    cens: dict[str, dict[str, bool]] = {"train": {}, "eval": {}}
     for m in comp.methods:
         stats = stats_by_stage[m]
         conv = summarize([s["conv"] for s in stats])
-        if comp.count_parents:
-            conv_total = summarize([_with_parents(cfg, root, m, s) for s in stats])
-        else:
-            conv_total = None
+        econv = summarize([s["eval_conv"] for s in stats])
+        conv_total = summarize([_with_parents(cfg, root, m, s) for s in stats]) \
+            if comp.count_parents else None
         wall = _median([s["wall_to_convergence_s"] for s in stats])
-        sr = _median([s["eval"].get("success_rate") for s in stats])
-        spl = _median([s["eval"].get("spl") for s in stats])
-        ratio = _median([s["length_over_shortest"] for s in stats])
-        auc = _median([s["auc"] for s in stats])
-        cell = _fmt_conv(conv)
+        ev = [s["eval"] for s in stats]
+        g_sr, g_spl = _median([e.get("greedy_sr") for e in ev]), \
+            _median([e.get("greedy_spl") for e in ev])
+        s_sr, s_spl = _median([e.get("sampled_sr", e.get("success_rate")) for e in ev]), \
+            _median([e.get("sampled_spl", e.get("spl")) for e in ev])
+        zs = [e["zero_shot"]["greedy_sr"] for e in ev if e.get("zero_shot")]
+        zs_med = _median(zs)
+        ratio = _median([e.get("greedy_length_ratio") for e in ev])
+        st_train = _seed_stats([s["conv"] for s in stats])
+        st_eval = _seed_stats([s["eval_conv"] for s in stats])
+        cell = _fmt_conv(conv) + _fmt_iqm(st_train)
         if conv_total is not None:
             cell += f" (incl. earlier stages: {_fmt_conv(conv_total)})"
         lines.append(
-            f"| {m} | {cell} | {conv['censored']}/{conv['n']} | "
-            f"{'n/a' if wall is None else f'{wall:.1f} s'} | "
-            f"{'n/a' if sr is None else f'{sr:.2f}'} | {'n/a' if spl is None else f'{spl:.2f}'} | "
-            f"{'n/a' if ratio is None else f'{ratio:.2f}'} | "
-            f"{'n/a' if auc is None else f'{auc:.2f}'} |")
-        if conv["median"] is not None:
-            medians[m] = (conv_total or conv)["median"]
-            censored[m] = bool((conv_total or conv)["median_censored"])
-        record["methods"][m] = dict(convergence=conv, convergence_incl_parents=conv_total,
-                                    wall_to_convergence_s=wall, final_success=sr, final_spl=spl,
-                                    length_over_shortest=ratio, auc=auc,
-                                    runs=[dict(seed=s["seed"], conv=s["conv"],
-                                               episodes=s["episodes"], eval=s["eval"],
-                                               wall_total_s=s["wall_total_s"]) for s in stats])
-    lines.append("")
-    if len(comp.methods) >= 2 and all(m in medians for m in comp.methods[:2]):
+            f"| {m} | {cell} | {_fmt_conv(econv) + _fmt_iqm(st_eval)} | "
+            f"{conv['censored']}/{conv['n']} / "
+            f"{econv['censored']}/{econv['n']} | {_f(g_sr)} / {_f(g_spl)} | "
+            f"{_f(s_sr)} / {_f(s_spl)} | "
+            f"{_f(zs_med) + (f' [{min(zs):.2f}-{max(zs):.2f}]' if zs else '')} | "
+            f"{_f(ratio)} | {'n/a' if wall is None else f'{wall:.1f} s'} |")
+        for rule, c in (("train", conv_total or conv), ("eval", econv)):
+            if c["median"] is not None:
+                med[rule][m] = c["median"]
+                cens[rule][m] = bool(c["median_censored"])
+        record["methods"][m] = dict(
+            convergence=conv, eval_convergence=econv, convergence_incl_parents=conv_total,
+            convergence_stats=st_train, eval_convergence_stats=st_eval,
+            wall_to_convergence_s=wall, final_greedy_sr=g_sr, final_greedy_spl=g_spl,
+            final_sampled_sr=s_sr, final_sampled_spl=s_spl, zero_shot_greedy_sr=zs_med,
+            greedy_length_over_shortest=ratio,
+            auc=_median([s["auc"] for s in stats]),
+            runs=[dict(seed=s["seed"], conv=s["conv"], eval_conv=s["eval_conv"],
+                       episodes=s["episodes"], eval=s["eval"],
+                       wall_total_s=s["wall_total_s"]) for s in stats])
+    lines += ["", "median [min-max] over seeds; IQM: interquartile mean with a 95 % "
+              "stratified-bootstrap interval (rliable). `+`: a lower bound (censored runs, "
+              "which never met the rule within their budget, count at their budget).", ""]
+    if len(comp.methods) >= 2:
         a, b = comp.methods[:2]
-        ours = medians[b] / medians[a] if medians[a] else math.nan
-        if censored[a] and censored[b]:
-            text = (f"Ratio {b} / {a}: **n/a**, neither converged within its budget "
-                    "(compare the curves and the SR AUC)")
-        elif censored[a]:
-            text = f"Ratio {b} / {a} (median episodes): **<= {ours:.2f}** ({a} censored)"
-        elif censored[b]:
-            text = f"Ratio {b} / {a} (median episodes): **>= {ours:.2f}** ({b} censored)"
-        else:
-            text = f"Ratio {b} / {a} (median episodes): **{ours:.2f}**"
-        if a in comp.paper and b in comp.paper:
-            text += f"; the paper's: {comp.paper[b] / comp.paper[a]:.2f} " \
-                    f"({comp.paper[b]:g} vs {comp.paper[a]:g} episodes)"
-        lines += [text + ".", ""]
-        record["ratio"] = None if censored[a] and censored[b] else ours
-    png = _plot_curves(cfg, comp, root, stats_by_stage)
+        record["ratio"], record["eval_ratio"] = None, None
+        for rule, label in (("train", "training-SR e*"), ("eval", "greedy-evaluation e*")):
+            text, value = _ratio_text(a, b, med[rule], cens[rule], comp, label)
+            lines += [text, ""]
+            record["ratio" if rule == "train" else "eval_ratio"] = value
+        for rule, key, label in (("train", "conv", "training-SR rule"),
+                                 ("eval", "eval_conv", "greedy-evaluation rule")):
+            v = verdict(a, [s[key] for s in stats_by_stage[a]], b,
+                        [s[key] for s in stats_by_stage[b]])
+            record["verdict" if rule == "train" else "eval_verdict"] = v
+            lines += [f"**Verdict ({label}): {v}.**", ""]
+    png = _plot_curves(cfg, comp, root, stats_by_stage, chance)
     lines += [f"![learning curves]({png.name})", ""]
     traj = _plot_trajectories(cfg, comp, root, stats_by_stage, scenes)
     if traj is not None:
         lines += [f"![trajectories]({traj.name})", ""]
+    lines += _parent_sections(cfg, comp, root, summary, record)
     summary["comparisons"].append(record)
+    return lines
+
+
+def _parent_sections(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
+                     summary: dict[str, Any], record: dict[str, Any]) -> list[str]:
+    """The stages the compared methods start from (meta-training): their own curves, so a
+    meta-policy that learned nothing is visible at a glance."""
+    lines: list[str] = []
+    parents = []
+    for m in comp.methods:
+        p = cfg.stages[m].init
+        while p is not None:
+            if p not in parents:
+                parents.append(p)
+            p = cfg.stages[p].init
+    for p in parents:
+        stats = [s for seed in cfg.seeds
+                 if (s := unit_stats(root, Unit(p, seed), cfg.convergence)) is not None]
+        if not stats:
+            continue
+        st = cfg.stages[p]
+        ev = [s["eval"] for s in stats]
+        chance = next((e for e in ev if "random_walk_sr" in e), {})
+        children = [m for m in comp.methods if cfg.stages[m].init == p]
+        zs = [r["eval"]["zero_shot"]["greedy_sr"] for m in children
+              for r in record["methods"][m]["runs"] if r["eval"].get("zero_shot")]
+        lines += [f"### Starting stage `{p}` ({st.mode}, {st.algo}, tasks `{st.tasks}`)", "",
+                  f"Final greedy SR over its own tasks' starts: "
+                  f"{_f(_median([e.get('greedy_sr') for e in ev]))} (sampled "
+                  f"{_f(_median([e.get('sampled_sr') for e in ev]))}; random walk "
+                  f"{_f(chance.get('random_walk_sr'), '.3f')}). Zero-shot greedy SR of its "
+                  f"final policy on the compared task: "
+                  f"{_f(_median(zs))}" + (f" [{min(zs):.2f}-{max(zs):.2f}]" if zs else "") +
+                  (f" (that task's random walk: {record['random_walk_sr']:.3f})"
+                   if "random_walk_sr" in record else "") + ".", ""]
+        fake = CompareSpec(name=f"{comp.name} - stage {p}", methods=(p,))
+        png = _plot_curves(cfg, fake, root, {p: stats}, chance)
+        lines += [f"![{p} curves]({png.name})", ""]
+        summary.setdefault("stages", {})[p] = dict(
+            final_greedy_sr=_median([e.get("greedy_sr") for e in ev]),
+            final_sampled_sr=_median([e.get("sampled_sr") for e in ev]),
+            random_walk_sr=chance.get("random_walk_sr"), zero_shot_greedy_sr=_median(zs))
     return lines
 
 
@@ -206,40 +360,63 @@ def _slug(text: str) -> str:
     return "".join(c if c.isalnum() else "-" for c in text.lower()).strip("-")
 
 
+def _band(curves: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    import warnings
+
+    n = max(len(c) for c in curves)
+    padded = np.full((len(curves), n), np.nan)
+    for i, c in enumerate(curves):
+        padded[i, :len(c)] = c
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return (np.nanmedian(padded, axis=0), np.nanmin(padded, axis=0),
+                np.nanmax(padded, axis=0))
+
+
 def _plot_curves(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
-                 stats_by_stage: dict[str, list[dict[str, Any]]]) -> Path:
+                 stats_by_stage: dict[str, list[dict[str, Any]]],
+                 chance: dict[str, Any] | None = None) -> Path:
+    """Two panels: training SR over the last W episodes, and greedy SR over all starts at
+    each periodic evaluation; median and min-max band over seeds; chance lines drawn."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7, 4), dpi=120)
-    w = cfg.convergence.window
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(11, 4), dpi=110, sharey=True)
+    n_max = max([len(s["success"]) for m in comp.methods for s in stats_by_stage[m]] or [1])
+    w = max(1, min(cfg.convergence.window, n_max // 5 or 1))
     for m in comp.methods:
+        stats = stats_by_stage[m]
         curves = [moving_success_rate(s["success"], min(w, max(1, len(s["success"]))))
-                  for s in stats_by_stage[m]]
+                  for s in stats]
         if not curves:
             continue
-        n = max(len(c) for c in curves)
-        padded = np.full((len(curves), n), np.nan)
-        for i, c in enumerate(curves):
-            padded[i, :len(c)] = c
-        x = np.arange(1, n + 1)
-        with np.errstate(all="ignore"):
-            import warnings
-
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)
-                med = np.nanmedian(padded, axis=0)
-                lo, hi = np.nanmin(padded, axis=0), np.nanmax(padded, axis=0)
+        med, lo, hi = _band(curves)
+        x = np.arange(1, len(med) + 1)
         (line,) = ax.plot(x, med, label=f"{m} (median of {len(curves)} seeds)")
         ax.fill_between(x, lo, hi, color=line.get_color(), alpha=0.2)
+        for i, s in enumerate(stats):
+            if len(s["eval_episodes"]):
+                ax2.plot(s["eval_episodes"], s["eval_greedy_sr"], marker=".", ms=4, lw=1,
+                         color=line.get_color(), alpha=0.8,
+                         label=f"{m}" if i == 0 else None)
+    for a in (ax, ax2):
+        if chance and "random_walk_sr" in chance:
+            a.axhline(chance["random_walk_sr"], color="red", ls=":", lw=1,
+                      label=f"random walk {chance['random_walk_sr']:.2f}")
+        if chance and chance.get("blind_sr") is not None:
+            a.axhline(chance["blind_sr"], color="orange", ls=":", lw=1,
+                      label=f"best state-blind {chance['blind_sr']:.2f}")
+        a.set_xlabel("training episodes")
+        a.set_ylim(0, 1.02)
+        a.legend(loc="lower right", fontsize=7)
     ax.axhline(cfg.convergence.threshold, color="grey", ls="--", lw=0.8)
-    ax.set_xlabel("training episodes")
-    ax.set_ylabel(f"success rate (last {w} episodes)")
-    ax.set_ylim(0, 1.02)
-    ax.set_title(comp.name)
-    ax.legend(loc="lower right", fontsize=8)
+    ax2.axhline(cfg.convergence.eval_threshold, color="grey", ls="--", lw=0.8)
+    ax.set_ylabel("success rate")
+    ax.set_title(f"training SR (sampled actions, last {w} episodes)", fontsize=9)
+    ax2.set_title("greedy SR over all start cells (one line per seed)", fontsize=9)
+    fig.suptitle(comp.name, fontsize=10)
     fig.tight_layout()
     out = root / f"curves-{_slug(comp.name)}.png"
     fig.savefig(out)

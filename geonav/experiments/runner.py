@@ -11,33 +11,55 @@ Run folder ``runs/NAME/``::
     scenes/<key>/                scene packages made on the fly
     tasks/<key>.json             task sets made on the fly
     units/<stage>/seed-<s>/      one training run: config.json, metrics.csv,
-                                 checkpoints/, progress.json, result.json (when done)
+                                 checkpoints/, progress.json, result.json (when done),
+                                 .lock (held while it trains), error.txt (its traceback,
+                                 when it raised), retries.json (when its worker died)
     summary.json, report.md, *.png
 
 Resume: rerunning skips units with a ``result.json`` and restarts unfinished
-ones, which continue from their last checkpoint (the trainers' resume).
+ones, which continue from their last checkpoint (the trainers' resume; metric
+rows logged after that checkpoint are dropped first). The same happens within
+a run when a unit's worker dies: it is resubmitted up to ``max_retries``
+times. A unit that raises is recorded as failed with its traceback and the
+other units go on (those that start from it are skipped).
+
+Every unit holds its folder's lock while it trains, so two runs of the same
+experiment (or an orphaned worker of a killed run) never train one unit twice
+at once: the second one fails with :class:`UnitLocked`.
 """
 
 from __future__ import annotations
 
+import fcntl
+import hashlib
 import json
 import logging
 import os
+import socket
 import time
-from collections.abc import Callable
+import traceback
+from collections.abc import Callable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Future, wait
-from dataclasses import dataclass
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
 from geonav.errors import ConfigError, GeonavError
-from geonav.experiments.backend import Backend, LocalBackend
+from geonav.experiments.backend import Backend, WorkerLost, make_backend
 from geonav.experiments.config import ExperimentConfig, TaskSpec
 
 log = logging.getLogger(__name__)
 
 RESULT = "result.json"
 PROGRESS = "progress.json"
+LOCK = ".lock"
+ERROR = "error.txt"
+RETRIES = "retries.json"
+
+
+class UnitLocked(GeonavError):
+    """A unit folder is being trained by another live process."""
 
 
 @dataclass(frozen=True)
@@ -57,12 +79,13 @@ class UnitEvent:
     """Progress of the experiment, for the CLI's bars."""
 
     unit: Unit | None
-    status: str  # "skipped" | "started" | "progress" | "done" | "failed"
+    status: str  # "skipped" | "started" | "progress" | "done" | "retry" | "failed"
     episodes: int = 0
     budget: int = 0
     done_units: int = 0
     total_units: int = 0
     message: str = ""
+    run: str = ""  # the experiment's name (a sweep runs several)
 
 
 def unit_dir(root: Path, unit: Unit) -> Path:
@@ -70,17 +93,30 @@ def unit_dir(root: Path, unit: Unit) -> Path:
 
 
 def prepare_inputs(cfg: ExperimentConfig, root: Path,
-                   progress: Callable[[str, float], None] | None = None
+                   progress: Callable[[str, float], None] | None = None,
+                   shared_root: Path | None = None
                    ) -> tuple[dict[str, str], dict[str, str]]:
-    """Make (or reuse) the scene packages and task sets; returns key -> path maps."""
+    """Make (or reuse) the scene packages and task sets; returns key -> path maps.
+
+    ``shared_root`` (a sweep's folder): inputs go there under names that carry a hash
+    of their spec, so variants with the same scene or task set share one copy.
+    """
     from geonav.demo import ensure_scene
+
+    base = root if shared_root is None else shared_root
+
+    def name(key: str, spec: Any, extra: str = "") -> str:
+        if shared_root is None:
+            return key
+        blob = json.dumps([asdict(spec), extra], sort_keys=True, default=str)
+        return f"{key}-{hashlib.sha1(blob.encode()).hexdigest()[:8]}"
 
     scenes: dict[str, str] = {}
     for key, spec in cfg.scenes.items():
         if spec.path:
             scenes[key] = str(Path(spec.path).resolve())
         else:
-            out = root / "scenes" / key
+            out = base / "scenes" / name(key, spec)
             ensure_scene(out, key, spec.synthetic or "residential", spec.seed, spec.size_m,
                          spec.gsd_m, progress=progress)
             scenes[key] = str(out.resolve())
@@ -89,11 +125,34 @@ def prepare_inputs(cfg: ExperimentConfig, root: Path,
         if tspec.path:
             tasks[key] = str(Path(tspec.path).resolve())
             continue
-        out = root / "tasks" / f"{key}.json"
+        out = base / "tasks" / f"{name(key, tspec, scenes[tspec.scene])}.json"
         if not out.exists():
-            make_taskset(tspec, scenes[tspec.scene]).save(out)
+            from geonav.difficulty import taskset_difficulty
+            from geonav.scene import Scene
+
+            out.parent.mkdir(parents=True, exist_ok=True)
+            ts = make_taskset(tspec, scenes[tspec.scene])
+            ts.meta["difficulty"] = taskset_difficulty(ts, Scene.open(scenes[tspec.scene]))
+            ts.save(out)
         tasks[key] = str(out.resolve())
+    from geonav.experiments.config import check_noise
+
+    check_noise(cfg, {k: task_difficulty(scenes[cfg.tasks[k].scene], p)["random_walk_sr"]
+                      for k, p in tasks.items()})
     return scenes, tasks
+
+
+def task_difficulty(scene_path: str, tasks_path: str) -> dict[str, Any]:
+    """The task set's chance figures (geonav.difficulty), computed once and kept in its
+    JSON ``meta["difficulty"]`` (user-supplied task files are left untouched)."""
+    from geonav.difficulty import taskset_difficulty
+    from geonav.scene import Scene
+    from geonav.tasks import TaskSet
+
+    ts = TaskSet.load(tasks_path)
+    if isinstance(ts.meta.get("difficulty"), dict):
+        return ts.meta["difficulty"]
+    return taskset_difficulty(ts, Scene.open(scene_path))
 
 
 def make_taskset(spec: TaskSpec, scene_path: str):
@@ -125,17 +184,136 @@ def _write_json(path: Path, data: dict[str, Any]) -> None:
     os.replace(tmp, path)
 
 
+LOCK_WAIT_S = 5.0
+"""How long a unit waits for its folder's lock (a killed holder takes a moment to exit)."""
+
+
+@contextmanager
+def unit_lock(out: Path, wait_s: float = LOCK_WAIT_S) -> Iterator[None]:
+    """Hold the unit folder ``out`` exclusively while a unit trains in it.
+
+    An ``flock`` on ``out/.lock``: the kernel drops it when the holder exits in any way,
+    so a killed holder never blocks a rerun; the file names the holder (pid, host) while
+    it runs and is emptied on a clean release, so a non-empty file found on acquiring
+    is the stale record of a holder that was killed, and is logged as such.
+
+    Args:
+        out: the unit folder.
+        wait_s: keep trying this long before giving up (a holder that was just killed
+            releases the lock only once all its threads have exited).
+
+    Raises:
+        UnitLocked: another live process (this or another machine of a shared folder)
+            is training this unit.
+    """
+    out.mkdir(parents=True, exist_ok=True)
+    fd = os.open(out / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        deadline = time.monotonic() + wait_s
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError as err:
+                if time.monotonic() < deadline:
+                    time.sleep(0.1)
+                    continue
+                holder = os.pread(fd, 4096, 0).decode(errors="replace").strip() or \
+                    "another process"
+                raise UnitLocked(f"unit folder {out} is in use by {holder}: another run of this "
+                                 "experiment is training it; wait for it to finish or stop "
+                                 "it first") from err
+        try:
+            stale = os.pread(fd, 4096, 0).decode(errors="replace").strip()
+            if stale:
+                log.warning("unit folder %s: the previous holder %s is gone (%s); taking over "
+                            "its stale lock", out, stale, _holder_state(stale))
+            me = json.dumps({"pid": os.getpid(), "host": socket.gethostname(),
+                             "since": round(time.time(), 3)})
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, me.encode(), 0)
+            yield
+        finally:
+            os.ftruncate(fd, 0)  # released cleanly: nothing stale left behind
+    finally:
+        os.close(fd)  # closing the descriptor releases the flock
+
+
+def read_lock(out: Path) -> dict[str, Any] | None:
+    """The holder recorded in a unit folder's lock file (None when free or unreadable)."""
+    return _read_json(out / LOCK)
+
+
+def _holder_state(text: str) -> str:
+    try:
+        holder = json.loads(text)
+        pid, host = int(holder["pid"]), str(holder["host"])
+    except (ValueError, KeyError, TypeError):
+        return "unreadable record"
+    if host != socket.gethostname():
+        return f"on host {host}"
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return f"pid {pid} is not running"
+    except PermissionError:
+        pass
+    return f"pid {pid} exists but no longer holds the lock"
+
+
 def run_unit(payload: dict[str, Any]) -> dict[str, Any]:
-    """Run one unit in this process (the function backends execute)."""
+    """Run one unit in this process (the function backends execute).
+
+    Holds the unit folder's lock, writes ``result.json`` when done, and on an exception
+    writes its traceback to ``error.txt`` in the unit folder before re-raising.
+    """
     from geonav.experiments.stages import execute_stage
 
     out = Path(payload["out_dir"])
-    out.mkdir(parents=True, exist_ok=True)
-    t0 = time.time()
-    result = execute_stage(payload)
-    result["wall_s_this_session"] = time.time() - t0
-    _write_json(out / RESULT, result)
+    with unit_lock(out):
+        (out / ERROR).unlink(missing_ok=True)
+        t0 = time.time()
+        try:
+            result = execute_stage(payload)
+        except Exception:
+            (out / ERROR).write_text(traceback.format_exc())
+            raise
+        result["wall_s_this_session"] = time.time() - t0
+        result["worker"] = {"host": socket.gethostname(), "pid": os.getpid()}
+        _write_json(out / RESULT, result)
     return result
+
+
+@dataclass
+class _Run:
+    """One experiment being run: its config, folder, inputs and unit states."""
+
+    cfg: ExperimentConfig
+    root: Path
+    stage_keys: list[str]
+    units: list[Unit]
+    scenes: dict[str, str]
+    tasks: dict[str, str]
+    done: dict[Unit, dict[str, Any]] = field(default_factory=dict)
+    failed: dict[Unit, str] = field(default_factory=dict)
+    retries: dict[Unit, int] = field(default_factory=dict)
+
+
+def _open_run(cfg: ExperimentConfig, out_root: str | os.PathLike[str], only: list[str] | None,
+              progress: Callable[[str, float], None] | None,
+              shared_inputs: Path | None = None) -> _Run:
+    root = Path(out_root).resolve() / cfg.name
+    root.mkdir(parents=True, exist_ok=True)
+    previous = _read_json(root / "config.json")
+    resolved = cfg.to_dict()
+    if previous is not None and _experiment_part(previous) != _experiment_part(resolved):
+        raise ConfigError(f"{root} holds a run of a different config; use another name or "
+                          "remove the folder")
+    _write_json(root / "config.json", resolved)
+    scenes, tasks = prepare_inputs(cfg, root, progress, shared_inputs)
+    stage_keys = cfg.stages_for(only)
+    units = [Unit(s, seed) for s in stage_keys for seed in cfg.seeds]
+    return _Run(cfg, root, stage_keys, units, scenes, tasks)
 
 
 def run_experiment(
@@ -143,8 +321,9 @@ def run_experiment(
     out_root: str | os.PathLike[str] = "runs",
     *,
     only: list[str] | None = None,
-    jobs: int = 1,
+    jobs: int | None = None,
     backend: Backend | None = None,
+    max_retries: int | None = None,
     on_event: Callable[[UnitEvent], None] | None = None,
     progress: Callable[[str, float], None] | None = None,
     report: bool = True,
@@ -155,83 +334,218 @@ def run_experiment(
         cfg: the experiment.
         out_root: parent folder; the run goes to ``out_root/cfg.name``.
         only: part names to run (``[[compare]] part``); None runs everything.
-        jobs: concurrent units for the default local backend.
-        backend: where units run (default: :class:`LocalBackend` with ``jobs``).
+        jobs: concurrent units (default: ``[backend] jobs``, else 2 locally, else the
+            cluster's capacity on Ray).
+        backend: where units run (default: the config's ``[backend]``; shut down at the end).
+        max_retries: retries of a unit whose worker died (default: ``[backend] max_retries``).
         on_event: unit-level progress callback.
         progress: input-preparation progress callback.
         report: write summary.json and report.md at the end.
     """
-    root = Path(out_root).resolve() / cfg.name
-    root.mkdir(parents=True, exist_ok=True)
-    previous = _read_json(root / "config.json")
-    resolved = cfg.to_dict()
-    if previous is not None and _experiment_part(previous) != _experiment_part(resolved):
-        raise ConfigError(f"{root} holds a run of a different config; use another name or "
-                          "remove the folder")
-    _write_json(root / "config.json", resolved)
-    scenes, tasks = prepare_inputs(cfg, root, progress)
-    stage_keys = cfg.stages_for(only)
-    units = [Unit(s, seed) for s in stage_keys for seed in cfg.seeds]
-    done: dict[Unit, dict[str, Any]] = {}
-    for u in units:
-        r = _read_json(unit_dir(root, u) / RESULT)
-        if r is not None:
-            done[u] = r
-            _emit(on_event, UnitEvent(u, "skipped", r.get("episodes", 0), r.get("episodes", 0),
-                                      len(done), len(units)))
-    backend = backend or LocalBackend(jobs)
-    running: dict[Future, Unit] = {}
-    failed: dict[Unit, str] = {}
+    return run_experiments([cfg], out_root, only=only, jobs=jobs, backend=backend,
+                           max_retries=max_retries, on_event=on_event, progress=progress,
+                           report=report)[0]
+
+
+def run_experiments(
+    cfgs: list[ExperimentConfig],
+    out_root: str | os.PathLike[str] = "runs",
+    *,
+    only: list[str] | None = None,
+    jobs: int | None = None,
+    backend: Backend | None = None,
+    max_retries: int | None = None,
+    on_event: Callable[[UnitEvent], None] | None = None,
+    progress: Callable[[str, float], None] | None = None,
+    report: bool = True,
+    shared_inputs: str | os.PathLike[str] | None = None,
+) -> list[dict[str, Any]]:
+    """Run several experiments (a sweep's variants) through one backend at once.
+
+    Units of all the experiments share the backend's slots; each experiment keeps its
+    own folder ``out_root/cfg.name`` and report. A unit that is the very same training
+    in several of them (same stage, task set, options and seed, and same parents) is
+    trained once; the others' unit folders link to it. Returns the summaries in order. The
+    backend and the retry budget come from the first config unless given.
+    ``shared_inputs``: one folder for the scenes and task sets of all of them (see
+    :func:`prepare_inputs`).
+    """
+    if not cfgs:
+        return []
+    spec = cfgs[0].backend
+    if backend is None:  # first: a missing extra or cluster fails before any work
+        backend = make_backend(spec.kind, jobs=jobs if jobs is not None else spec.jobs,
+                               address=spec.address, cpus_per_unit=spec.cpus_per_unit,
+                               gpus_per_unit=spec.gpus_per_unit)
     try:
+        shared = None if shared_inputs is None else Path(shared_inputs).resolve()
+        runs = [_open_run(cfg, out_root, only, progress, shared) for cfg in cfgs]
+    except BaseException:
+        backend.shutdown(cancel=True)
+        raise
+    retries_allowed = spec.max_retries if max_retries is None else max_retries
+    total = sum(len(r.units) for r in runs)
+    for run in runs:
+        for u in run.units:
+            r = _read_json(unit_dir(run.root, u) / RESULT)
+            if r is not None:
+                run.done[u] = r
+                _emit(on_event, UnitEvent(u, "skipped", r.get("episodes", 0),
+                                          r.get("episodes", 0), _n_done(runs), total,
+                                          run=run.cfg.name))
+    running: dict[Future, tuple[_Run, Unit]] = {}
+    shared = _share(runs)
+    try:
+        for run in runs:
+            backend.attach(run.root)
         while True:
-            for u in units:
-                if u in done or u in failed or u in running.values():
-                    continue
-                if len(running) >= backend.slots:
-                    break
-                parent = cfg.stages[u.stage].init
-                if parent is not None:
-                    pu = Unit(parent, u.seed)
-                    if pu in failed:
-                        failed[u] = f"parent {pu.key} failed"
-                        continue
-                    if pu not in done:
-                        continue
-                payload = _payload(cfg, root, u, scenes, tasks, done)
-                running[backend.submit(run_unit, payload)] = u
-                _emit(on_event, UnitEvent(u, "started", 0, cfg.stages[u.stage].episodes,
-                                          len(done), len(units)))
+            _submit_ready(runs, backend, running, on_event, total, shared)
             if not running:
                 break
             finished, _ = wait(list(running), timeout=1.0, return_when=FIRST_COMPLETED)
             for fut in finished:
-                u = running.pop(fut)
-                try:
-                    done[u] = fut.result()
-                    _emit(on_event, UnitEvent(u, "done", done[u].get("episodes", 0),
-                                              cfg.stages[u.stage].episodes, len(done),
-                                              len(units)))
-                except (GeonavError, RuntimeError, OSError, ValueError) as err:
-                    failed[u] = f"{type(err).__name__}: {err}"
-                    log.error("unit %s failed: %s", u.key, err)
-                    _emit(on_event, UnitEvent(u, "failed", 0, 0, len(done), len(units),
-                                              failed[u]))
-            for fut, u in running.items():
-                p = _read_json(unit_dir(root, u) / PROGRESS)
+                run, u = running.pop(fut)
+                _collect(run, u, fut, retries_allowed, on_event, _n_done(runs), total)
+            for run, u in running.values():
+                p = _read_json(unit_dir(run.root, u) / PROGRESS)
                 if p:
                     _emit(on_event, UnitEvent(u, "progress", p.get("episodes", 0),
-                                              cfg.stages[u.stage].episodes, len(done),
-                                              len(units)))
+                                              run.cfg.stages[u.stage].episodes,
+                                              _n_done(runs), total, run=run.cfg.name))
     except BaseException:
         backend.shutdown(cancel=True)
         raise
     backend.shutdown()
-    summary: dict[str, Any] = {"name": cfg.name, "failed": {u.key: m for u, m in failed.items()}}
-    if report:
-        from geonav.experiments.report import write_report
+    summaries = []
+    for run in runs:
+        summary: dict[str, Any] = {"name": run.cfg.name,
+                                   "failed": {u.key: m for u, m in run.failed.items()}}
+        if report:
+            from geonav.experiments.report import write_report
 
-        summary = write_report(cfg, root, stage_keys, scenes, tasks, failed)
-    return summary
+            summary = write_report(run.cfg, run.root, run.stage_keys, run.scenes, run.tasks,
+                                   run.failed)
+        summary["retries"] = {u.key: n for u, n in run.retries.items()}
+        written = _read_json(run.root / "summary.json") if report else None
+        if written is not None:
+            _write_json(run.root / "summary.json", {**written, "retries": summary["retries"]})
+        summaries.append(summary)
+    return summaries
+
+
+def _n_done(runs: list[_Run]) -> int:
+    return sum(len(r.done) for r in runs)
+
+
+def _fingerprint(run: _Run, u: Unit) -> str:
+    """What makes a unit's training: its payload but the folders, and its parent's."""
+    stage = run.cfg.stages[u.stage]
+    parent = None if stage.init is None else Unit(stage.init, u.seed)
+    payload = _payload(run.cfg, run.root, u, run.scenes, run.tasks,
+                       {} if parent is None else {parent: {"checkpoint": None}})
+    payload.pop("out_dir")
+    payload["init_checkpoint"] = None if parent is None else _fingerprint(run, parent)
+    blob = json.dumps(payload, sort_keys=True, default=str)
+    return hashlib.sha1(blob.encode()).hexdigest()
+
+
+def _share(runs: list[_Run]) -> dict[tuple[int, Unit], tuple[_Run, Unit]]:
+    """Units of later runs that are the very same training as one of an earlier run
+    (a sweep point that changes only a later stage): (run id, unit) -> its owner."""
+    owners: dict[str, tuple[_Run, Unit]] = {}
+    shared: dict[tuple[int, Unit], tuple[_Run, Unit]] = {}
+    for run in runs:
+        for u in run.units:
+            fp = _fingerprint(run, u)
+            owner = owners.setdefault(fp, (run, u))
+            here = unit_dir(run.root, u)
+            if owner[0] is run or (here.exists() and not here.is_symlink()):
+                continue  # its own folder (e.g. trained before sharing): keep it
+            shared[(id(run), u)] = owner
+    return shared
+
+
+def _adopt(run: _Run, u: Unit, owner: tuple[_Run, Unit]) -> None:
+    """Make ``u``'s folder a link to its owner's (done) folder and take its result."""
+    orun, ou = owner
+    here, there = unit_dir(run.root, u), unit_dir(orun.root, ou)
+    if not here.is_symlink():
+        here.parent.mkdir(parents=True, exist_ok=True)
+        here.symlink_to(os.path.relpath(there, here.parent), target_is_directory=True)
+    run.done[u] = orun.done[ou]
+
+
+def _submit_ready(runs: list[_Run], backend: Backend, running: dict[Future, tuple[_Run, Unit]],
+                  on_event: Callable[[UnitEvent], None] | None, total: int,
+                  shared: dict[tuple[int, Unit], tuple[_Run, Unit]]) -> None:
+    busy = {(id(r), u) for r, u in running.values()}
+    for run in runs:
+        for u in run.units:
+            if u in run.done or u in run.failed or (id(run), u) in busy:
+                continue
+            owner = shared.get((id(run), u))
+            if owner is not None:  # trained once, by its owner
+                orun, ou = owner
+                if ou in orun.done:
+                    _adopt(run, u, owner)
+                    _emit(on_event, UnitEvent(u, "done", run.done[u].get("episodes", 0),
+                                              run.cfg.stages[u.stage].episodes,
+                                              _n_done(runs), total,
+                                              f"the same unit as {orun.cfg.name}:{ou.key}",
+                                              run=run.cfg.name))
+                elif ou in orun.failed:
+                    run.failed[u] = f"the same unit as {orun.cfg.name}:{ou.key}, which failed"
+                continue
+            if len(running) >= backend.slots:
+                return
+            stage = run.cfg.stages[u.stage]
+            if stage.init is not None:
+                pu = Unit(stage.init, u.seed)
+                if pu in run.failed:
+                    run.failed[u] = f"parent {pu.key} failed"
+                    continue
+                if pu not in run.done:
+                    continue
+            payload = _payload(run.cfg, run.root, u, run.scenes, run.tasks, run.done)
+            fut = backend.submit(run_unit, payload, resources={"cpus": max(1, stage.workers)})
+            running[fut] = (run, u)
+            _emit(on_event, UnitEvent(u, "started", 0, stage.episodes, _n_done(runs), total,
+                                      run=run.cfg.name))
+
+
+def _collect(run: _Run, u: Unit, fut: Future, retries_allowed: int,
+             on_event: Callable[[UnitEvent], None] | None, n_done: int, total: int) -> None:
+    """Record a finished unit: done, retried (its worker died) or failed (it raised)."""
+    out = unit_dir(run.root, u)
+    budget = run.cfg.stages[u.stage].episodes
+    try:
+        run.done[u] = fut.result()
+    except WorkerLost as err:
+        n = run.retries[u] = run.retries.get(u, 0) + 1
+        out.mkdir(parents=True, exist_ok=True)
+        _write_json(out / RETRIES, {"worker_lost": n, "last": str(err)})
+        if n <= retries_allowed:
+            log.warning("unit %s: its worker died (%s); retry %d of %d from its last "
+                        "checkpoint", u.key, err, n, retries_allowed)
+            _emit(on_event, UnitEvent(u, "retry", 0, budget, n_done, total, str(err),
+                                      run=run.cfg.name))
+            return
+        run.failed[u] = f"its worker died {n} times (max_retries = {retries_allowed}): {err}"
+    except UnitLocked as err:
+        run.failed[u] = str(err)
+    except Exception as err:  # noqa: BLE001 - a unit's own failure, reported; the rest goes on
+        trace = out / ERROR
+        if not trace.exists():  # raised outside run_unit (e.g. by the backend)
+            out.mkdir(parents=True, exist_ok=True)
+            trace.write_text("".join(traceback.format_exception(err)))
+        run.failed[u] = f"{type(err).__name__}: {err} (traceback: {trace})"
+    else:
+        _emit(on_event, UnitEvent(u, "done", run.done[u].get("episodes", 0), budget,
+                                  n_done + 1, total, run=run.cfg.name))
+        return
+    log.error("unit %s failed: %s", u.key, run.failed[u])
+    _emit(on_event, UnitEvent(u, "failed", 0, 0, n_done, total, run.failed[u],
+                              run=run.cfg.name))
 
 
 def _experiment_part(d: dict[str, Any]) -> Any:
@@ -252,7 +566,7 @@ def _payload(cfg: ExperimentConfig, root: Path, u: Unit, scenes: dict[str, str],
         scene=scenes[tspec.scene], tasks=tasks[stage.tasks], init_checkpoint=init_ckpt,
         out_dir=str(unit_dir(root, u)), convergence=dict(
             window=cfg.convergence.window, threshold=cfg.convergence.threshold,
-            hold=cfg.convergence.hold),
+            hold=cfg.convergence.hold, eval_threshold=cfg.convergence.eval_threshold),
         eval_starts=cfg.eval_starts,
     )
 

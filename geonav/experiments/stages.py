@@ -67,28 +67,41 @@ class ProgressFile:
 
 
 class ConvergenceStop:
-    """Stops a training stage once the convergence criterion has been confirmed
-    (e* found and held for W more episodes), so budgets are upper bounds."""
+    """Stops a training stage once both convergence rules are confirmed: the training-SR
+    e* (found and held for W more episodes) and the evaluation e* (two consecutive greedy
+    evaluations over all starts at ``eval_threshold``), so budgets are upper bounds and
+    both e* are known when it stops."""
 
-    def __init__(self, criterion: Any, successes: list[bool] | None = None) -> None:
+    def __init__(self, criterion: Any, successes: list[bool] | None = None,
+                 evals: list[tuple[int, float]] | None = None) -> None:
         self.criterion = criterion
         self.successes = list(successes or [])
+        self.evals = list(evals or [])
         self.converged_at: int | None = None
+        self.eval_converged_at: int | None = None
 
     def on_train_start(self, info: dict[str, Any]) -> None:
         pass
 
+    def on_eval(self, row: dict[str, Any]) -> None:
+        from geonav.convergence import eval_convergence
+
+        self.evals.append((int(row["episode"]), float(row["greedy_sr"])))
+        ep, sr = zip(*self.evals, strict=True)
+        self.eval_converged_at = eval_convergence(ep, sr, 0,
+                                                  self.criterion.eval_threshold).episodes
+
     def on_episode(self, record: dict[str, Any]) -> bool | None:
-        from geonav.experiments.convergence import episodes_to_convergence
+        from geonav.convergence import episodes_to_convergence
 
         self.successes.append(bool(record.get("success")))
         w = self.criterion.window
         # check once per W/10 episodes: cheap and at most W/10 episodes late
-        if len(self.successes) % max(1, w // 10) == 0:
-            conv = episodes_to_convergence(self.successes, self.criterion)
-            if conv.episodes is not None:
-                self.converged_at = conv.episodes
-                return False
+        if self.converged_at is None and len(self.successes) % max(1, w // 10) == 0:
+            self.converged_at = episodes_to_convergence(self.successes,
+                                                        self.criterion).episodes
+        if self.converged_at is not None and self.eval_converged_at is not None:
+            return False
         return None
 
     def on_checkpoint(self, path: Any, episodes: int) -> None:
@@ -109,21 +122,10 @@ def _load_init(model: Any, path: str | None, env: Any) -> None:
     model.load_state_dict(ckpt.model_state)
 
 
-@trainer("train", "a3c")
-def _train_a3c(p: dict[str, Any], env_factory: Any, callbacks: list[Any],
-               resume: str | None) -> tuple[Any, int, str]:
-    from geonav.policy.a3c import A3CTrainer
-
-    cfg, net, rest = _algo_cfg(p)
-    if rest:
-        raise ConfigError(f"stage {p.get('stage')!r}: unknown a3c option(s) {sorted(rest)}")
-    net = _init_net(p, net, resume)
-    t = A3CTrainer(env_factory, net, cfg, out_dir=p["out_dir"], resume=resume,
-                   callbacks=callbacks, tensorboard=False)
-    if resume is None:
-        _load_init(t.model, p.get("init_checkpoint"), t.env)
-    result = t.train()
-    return result.model, result.episodes, str(result.checkpoint)
+def _engine_opts(rest: dict[str, Any]) -> dict[str, Any]:
+    """Pop the trainer engine options (engine, batch, device) from a stage's options."""
+    return {"engine": rest.pop("engine", "batched"), "batch": rest.pop("batch", None),
+            "device": rest.pop("device", None)}
 
 
 def _algo_cfg(p: dict[str, Any]) -> tuple[Any, Any, dict[str, Any]]:
@@ -132,6 +134,18 @@ def _algo_cfg(p: dict[str, Any]) -> tuple[Any, Any, dict[str, Any]]:
     from geonav.policy.meta_config import BASE_CONFIGS, base_config
 
     opts = dict(p["options"])
+    if p["algo"] == "ppo":
+        from geonav.policy.batched.ppo import PPOConfig
+
+        net_opts = {k: opts.pop(k) for k in list(opts) if k in NetConfig.__dataclass_fields__}
+        if net_opts and "obs_size_px" not in net_opts:
+            from geonav.tasks import TaskSet
+
+            net_opts["obs_size_px"] = TaskSet.load(p["tasks"]).camera.size_px
+        ppo_opts = {k: opts.pop(k) for k in list(opts) if k in PPOConfig.__dataclass_fields__}
+        cfg = from_dict(PPOConfig, {**ppo_opts, "episodes": p["episodes"],
+                                    "workers": p["workers"], "seed": p["seed"]})
+        return cfg, (from_dict(NetConfig, net_opts) if net_opts else None), opts
     net_opts = {k: opts.pop(k) for k in list(opts) if k in NetConfig.__dataclass_fields__}
     if net_opts and "obs_size_px" not in net_opts:
         from geonav.tasks import TaskSet
@@ -152,19 +166,19 @@ def _init_net(p: dict[str, Any], net: Any, resume: str | None) -> Any:
     return net
 
 
-@trainer("train", "savn", "isar")
-def _train_meta_algo(p: dict[str, Any], env_factory: Any, callbacks: list[Any],
-                     resume: str | None) -> tuple[Any, int, str]:
-    from geonav.policy.isar import ISARTrainer
-    from geonav.policy.savn import SAVNTrainer
+@trainer("train", "a3c", "savn", "isar", "ppo")
+def _train_algo(p: dict[str, Any], env_factory: Any, callbacks: list[Any],
+                resume: str | None) -> tuple[Any, int, str]:
+    from geonav.policy.engine import build_trainer
 
     cfg, net, rest = _algo_cfg(p)
+    eng = _engine_opts(rest)
     if rest:
         raise ConfigError(f"stage {p.get('stage')!r}: unknown {p['algo']} option(s) "
                           f"{sorted(rest)}")
-    cls = {"savn": SAVNTrainer, "isar": ISARTrainer}[p["algo"]]
-    t = cls(env_factory, _init_net(p, net, resume), cfg, out_dir=p["out_dir"], resume=resume,
-            callbacks=callbacks, tensorboard=False)
+    t = build_trainer(p["algo"], eng["engine"], env_factory, _init_net(p, net, resume), cfg,
+                      batch=eng["batch"], device=eng["device"], out_dir=p["out_dir"],
+                      resume=resume, callbacks=callbacks, tensorboard=False)
     if resume is None:
         _load_init(t.model, p.get("init_checkpoint"), t.env)
     result = t.train()
@@ -175,19 +189,20 @@ def _train_meta_algo(p: dict[str, Any], env_factory: Any, callbacks: list[Any],
 def _meta_train(p: dict[str, Any], env_factory: Any, callbacks: list[Any],
                 resume: str | None) -> tuple[Any, int, str]:
     from geonav.policy.config import from_dict
-    from geonav.policy.meta import MetaTrainer
+    from geonav.policy.engine import build_meta_trainer
     from geonav.policy.meta_config import MetaConfig
 
     cfg, net, rest = _algo_cfg(p)
+    eng = _engine_opts(rest)
     meta_opts = {k: rest.pop(k) for k in list(rest) if k in MetaConfig.__dataclass_fields__}
     if rest:
         raise ConfigError(f"stage {p.get('stage')!r}: unknown meta-train option(s) "
                           f"{sorted(rest)}")
     meta = from_dict(MetaConfig, {**meta_opts, "episodes": p["episodes"],
                                   "workers": p["workers"], "seed": p["seed"]})
-    t = MetaTrainer(env_factory, _init_net(p, net, resume), p["algo"], cfg, meta,
-                    out_dir=p["out_dir"], resume=resume, callbacks=callbacks,
-                    tensorboard=False)
+    t = build_meta_trainer(p["algo"], eng["engine"], env_factory, _init_net(p, net, resume),
+                           cfg, meta, device=eng["device"], out_dir=p["out_dir"],
+                           resume=resume, callbacks=callbacks, tensorboard=False)
     if resume is None:
         _load_init(t.model, p.get("init_checkpoint"), t.env)
     result = t.train()
@@ -199,12 +214,13 @@ def _curriculum(p: dict[str, Any], env_factory: Any, callbacks: list[Any],
                 resume: str | None) -> tuple[Any, int, str]:
     """The stages resume themselves from ``out_dir`` (curriculum.json and each stage's
     checkpoints/latest.pt); ``episodes`` is the budget of each stage."""
-    from geonav.experiments.convergence import ConvergenceCriterion
+    from geonav.convergence import ConvergenceCriterion
     from geonav.policy.config import from_dict
     from geonav.policy.curriculum import run_curriculum
     from geonav.policy.meta_config import CurriculumConfig
 
     cfg, net, rest = _algo_cfg(p)
+    eng = _engine_opts(rest)
     cur_opts = {k: rest.pop(k) for k in list(rest)
                 if k in CurriculumConfig.__dataclass_fields__}
     if rest:
@@ -220,7 +236,7 @@ def _curriculum(p: dict[str, Any], env_factory: Any, callbacks: list[Any],
     res = run_curriculum(env_factory, p.get("init_checkpoint"), p["algo"], cfg, cur,
                          out_dir=p["out_dir"], criterion=criterion,
                          net_cfg=None if p.get("init_checkpoint") else net,
-                         callbacks=callbacks)
+                         callbacks=callbacks, **eng)
     return res.model, res.episodes, str(res.checkpoint)
 
 
@@ -241,35 +257,47 @@ def execute_stage(p: dict[str, Any]) -> dict[str, Any]:
     resume = str(latest) if latest.exists() else None
     if resume is None and (out / "metrics.csv").exists():
         # killed before its first checkpoint: start the unit again from scratch
-        for name in ("metrics.csv", "config.json", "progress.json"):
+        for name in ("metrics.csv", "eval.csv", "config.json", "progress.json"):
             (out / name).unlink(missing_ok=True)
     if resume is not None:
         truncate_metrics(out / "metrics.csv", resume)
     env_factory = EnvFactory(p["scene"], p["tasks"])
     callbacks: list[Any] = [ProgressFile(out / "progress.json")]
     p = dict(p, options=dict(p["options"]))
+    if p["options"].pop("tensorboard", False):  # stage option: TensorBoard under SB3's tags
+        from geonav.policy.callbacks import tensorboard_callback
+
+        tb = tensorboard_callback(out / "tb", required=True)
+        if tb is not None:
+            callbacks.append(tb)
     if p["options"].pop("stop_at_convergence", False) and p["mode"] != "curriculum":
-        from geonav.experiments.convergence import ConvergenceCriterion
+        from geonav.convergence import ConvergenceCriterion
         from geonav.policy.callbacks import read_metrics
 
         before = [bool(r["success"]) for r in read_metrics(out / "metrics.csv")] \
             if resume is not None and (out / "metrics.csv").exists() else []
-        callbacks.append(ConvergenceStop(ConvergenceCriterion(**p["convergence"]), before))
+        evals_before = [(int(r["episode"]), float(r["greedy_sr"]))
+                        for r in read_metrics(out / "eval.csv")] \
+            if resume is not None and (out / "eval.csv").exists() else []
+        crit = ConvergenceCriterion(**p["convergence"])
+        callbacks.append(ConvergenceStop(crit, before, evals_before))
     model, episodes, checkpoint = TRAINERS[key](p, env_factory, callbacks, resume)
     metrics, offset, eval_factory = out / "metrics.csv", 0, env_factory
+    evals = out / "eval.csv"
     if p["mode"] == "curriculum":
         # Convergence is judged on the last (lowest) stage; the earlier stages of the
         # unit count as episodes spent before it.
         stages = json.loads((out / "curriculum.json").read_text())["stages"]
         last = stages[-1]
         metrics = out / f"stage_{len(stages) - 1}_{float(last['alt_m']):g}m" / "metrics.csv"
+        evals = metrics.with_name("eval.csv")
         offset = sum(int(s["episodes"]) for s in stages[:-1])
         eval_factory = EnvFactory(p["scene"], p["tasks"], alt_m=float(last["alt_m"]))
     evaluation, trajectories = evaluate_unit(model, checkpoint, eval_factory, p)
     return dict(stage=p["stage"], seed=p["seed"], mode=p["mode"], algo=p["algo"],
                 episodes=int(episodes), episodes_before_metrics=offset, checkpoint=checkpoint,
-                metrics=str(metrics), scene=p["scene"], tasks=p["tasks"], eval=evaluation,
-                trajectories=trajectories)
+                metrics=str(metrics), evals=str(evals), scene=p["scene"], tasks=p["tasks"],
+                eval=evaluation, trajectories=trajectories)
 
 
 def truncate_metrics(metrics_csv: Path, checkpoint: str) -> None:
@@ -293,20 +321,34 @@ def truncate_metrics(metrics_csv: Path, checkpoint: str) -> None:
 
 
 def evaluate_unit(model: Any, checkpoint: str, env_factory: Any, p: dict[str, Any]
-                  ) -> tuple[dict[str, float], list[dict[str, Any]]]:
-    """Held-out evaluation (seeded starts, sampled actions, ALGORITHMS.md (f)) and two
-    greedy example trajectories per unit."""
+                  ) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """Final evaluation of a unit (ALGORITHMS.md (f)): greedy and sampled from every start
+    cell (a held-out seeded sample above ``eval_starts``), the task's exact chance figures,
+    the zero-shot figures of the policy the unit started from, and two greedy example
+    trajectories."""
+    from geonav.difficulty import env_difficulty
     from geonav.policy.agent import Agent
     from geonav.policy.checkpoint import load_checkpoint
-    from geonav.policy.evaluation import evaluate
+    from geonav.policy.evaluation import evaluate_both
 
     env = env_factory()
     frozen = load_checkpoint(checkpoint).build_encoder()
     n_tasks = len(env.unwrapped.tasks)
-    per_task = max(1, int(p.get("eval_starts", 100)) // n_tasks)
-    # held-out: a seed no training worker uses
-    res = evaluate(model, env, frozen=frozen, episodes_per_task=per_task,
-                   seed=10_000 + int(p["seed"]), greedy=False)
+    limit = int(p.get("eval_starts", 100))
+    seed = 10_000 + int(p["seed"])  # held out: a seed no training worker uses
+    res = evaluate_both(model, env, frozen=frozen, max_starts=limit, seed=seed)
+    chance = env_difficulty(env)
+    evaluation: dict[str, Any] = {
+        "starts": res["starts"], **res["row"],
+        "random_walk_sr": chance["random_walk_sr"], "blind_sr": chance["blind_sr"],
+        "mean_shortest_path": chance["mean_shortest_path"],
+        # the keys of geonav <= 0.1 (sampled actions)
+        "success_rate": res["row"]["sampled_sr"], "spl": res["row"]["sampled_spl"]}
+    if p.get("init_checkpoint"):
+        init = load_checkpoint(p["init_checkpoint"])
+        zs = evaluate_both(init.build_model(), env, frozen=init.build_encoder(),
+                           max_starts=limit, seed=seed)
+        evaluation["zero_shot"] = zs["row"]
     trajectories = []
     agent = Agent(model.eval(), frozen, greedy=True, seed=0)
     for i in range(min(2, n_tasks * 2)):
@@ -319,4 +361,4 @@ def evaluate_unit(model: Any, checkpoint: str, env_factory: Any, p: dict[str, An
             done = terminated or truncated
         trajectories.append(dict(task_index=i % n_tasks, cells=cells,
                                  success=bool(info["success"])))
-    return res.summary(), trajectories
+    return evaluation, trajectories

@@ -10,12 +10,12 @@ stop, 128 + N when signal N (SIGINT 130, SIGHUP 129, SIGTERM 143) ended it.
 from __future__ import annotations
 
 import argparse
-import math
 import signal
 import sys
 import threading
 from typing import Any
 
+from geonav.cliutil import finite_float, nonneg_float, positive_float, positive_int
 from geonav.errors import ConfigError
 
 
@@ -28,13 +28,17 @@ def _cell(text: str) -> tuple[int, int]:
 
 
 def _lonlat(text: str) -> Any:
+    from geonav.errors import GeoError
     from geonav.geo import LonLat
 
+    parts = text.split(",")
+    if len(parts) not in (2, 3):
+        raise argparse.ArgumentTypeError(f"home {text!r}: give LAT,LON[,ALT]")
+    lat, lon, *alt = (finite_float(v) for v in parts)
     try:
-        lat, lon, *alt = (float(v) for v in text.split(","))
-    except ValueError as err:
-        raise argparse.ArgumentTypeError(f"home {text!r}: give LAT,LON[,ALT]") from err
-    return LonLat(lon, lat, alt[0] if alt else 0.0)
+        return LonLat(lon, lat, alt[0] if alt else 0.0)
+    except GeoError as err:
+        raise argparse.ArgumentTypeError(f"home {text!r}: {err}") from None
 
 
 def add_parser(subparsers: Any) -> None:
@@ -59,13 +63,13 @@ def add_parser(subparsers: Any) -> None:
     )
     p.add_argument(
         "--alt",
-        type=_positive,
+        type=positive_float,
         help="flight altitude above take-off, m (default: the policy's; required for a "
         "policy trained at several altitudes)",
     )
     p.add_argument(
         "--max-alt",
-        type=_positive,
+        type=positive_float,
         default=120.0,
         help="altitude ceiling, m; a higher --alt/policy altitude is clamped with a warning",
     )
@@ -77,16 +81,18 @@ def add_parser(subparsers: Any) -> None:
         default="px4",
         help="emulator flavour for --dry-run",
     )
-    p.add_argument("--max-steps", type=int, help="step budget (default: the task's, or 70)")
+    p.add_argument(
+        "--max-steps", type=positive_int, help="step budget (default: the task's, or 70)"
+    )
     p.add_argument(
         "--max-distance",
-        type=float,
+        type=positive_float,
         default=float("inf"),
         help="geofence radius around home, metres",
     )
     p.add_argument(
         "--fence-margin",
-        type=_non_negative,
+        type=nonneg_float,
         help="setpoints stay this far inside the scene, m (default: one lattice step); "
         "the vehicle may overshoot half of it before the flight ends",
     )
@@ -104,7 +110,7 @@ def add_parser(subparsers: Any) -> None:
     )
     p.add_argument(
         "--connect-timeout",
-        type=_positive,
+        type=positive_float,
         default=30.0,
         help="seconds to wait for the autopilot (TCP/serial connects are retried)",
     )
@@ -132,29 +138,11 @@ def _emulator_args(e: argparse.ArgumentParser) -> None:
         default="udp:127.0.0.1:14580",
         help="udp:HOST:PORT (reply to senders), tcp:HOST:PORT, or udpout:HOST:PORT",
     )
-    e.add_argument("--time-scale", type=float, default=1.0, help="emulated seconds per second")
-    e.add_argument("--seconds", type=float, default=0.0, help="stop after this long (0: Ctrl-C)")
+    e.add_argument("--time-scale", type=positive_float, default=1.0,
+                   help="emulated seconds per second")
+    e.add_argument("--seconds", type=nonneg_float, default=0.0,
+                   help="stop after this long (0: Ctrl-C)")
     e.set_defaults(handler=run_emulator)
-
-
-def _positive(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError as err:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from err
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"{text!r}: give a positive number")
-    return value
-
-
-def _non_negative(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError as err:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from err
-    if not (math.isfinite(value) and value >= 0):
-        raise argparse.ArgumentTypeError(f"{text!r}: give a number >= 0")
-    return value
 
 
 def run_fly(args: argparse.Namespace) -> int:
@@ -167,7 +155,7 @@ def run_fly(args: argparse.Namespace) -> int:
     if args.target is None and args.task is None:
         raise ConfigError("give --target IX,IY or --task FILE[:NAME]")
     try:
-        from geonav.cli import progress_bar
+        from geonav.cliutil import progress_bar
 
         progress = progress_bar("fly")
     except ImportError:

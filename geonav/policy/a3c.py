@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import queue as queue_mod
 import sys
@@ -48,6 +49,28 @@ from geonav.policy.optim import SharedAdam
 log = logging.getLogger(__name__)
 
 EnvFactory = Callable[[], Any]
+
+
+def truncate_csv(path: Path, last_episode: int) -> None:
+    """Drop the rows of a run CSV logged after ``last_episode`` (resume from a checkpoint)."""
+    import csv
+
+    if not path.exists():
+        return
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+        fields = list(rows[0].keys()) if rows else None
+    if fields is None:
+        return
+    keep = [r for r in rows if int(float(r["episode"])) <= last_episode]
+    if len(keep) == len(rows):
+        return
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=fields)
+        w.writeheader()
+        w.writerows(keep)
+    os.replace(tmp, path)
 
 
 class WorkerFailed(GeonavError):
@@ -278,6 +301,10 @@ class TrainResult:
     checkpoint: Path | None = None
     out_dir: Path | None = None
     records: list[dict[str, Any]] = field(default_factory=list, repr=False)
+    evals: list[dict[str, Any]] = field(default_factory=list, repr=False)
+    """Rows of the periodic greedy/sampled evaluations of this call (see eval.csv)."""
+    eval_s: float = 0.0
+    """Seconds of this call spent in periodic evaluation (inside ``wall_s``)."""
 
     @property
     def steps_per_s(self) -> float:
@@ -301,7 +328,9 @@ class A3CTrainer:
             each sets one torch thread before any work), 'spawn' (default elsewhere; each
             worker re-imports torch, several seconds) or 'forkserver'.
         keep_records: keep every episode record in ``TrainResult.records``.
-        tensorboard: also log to ``out_dir/tb`` when the tensorboard extra is installed.
+        tensorboard: a folder for TensorBoard event files under SB3's tag names, x = env
+            steps (``True``: ``out_dir/tb``); None (default) logs none. Needs the
+            ``tensorboard`` extra.
     """
 
     algorithm = "a3c"
@@ -313,7 +342,8 @@ class A3CTrainer:
                  cfg: A3CConfig | None = None, *, out_dir: str | os.PathLike[str] | None = None,
                  resume: str | os.PathLike[str] | None = None,
                  callbacks: Sequence[Callback] = (), mp_context: str | None = None,
-                 keep_records: bool = True, tensorboard: bool = True) -> None:
+                 keep_records: bool = True,
+                 tensorboard: str | os.PathLike[str] | bool | None = None) -> None:
         if mp_context is None:
             mp_context = "fork" if "fork" in torch.multiprocessing.get_all_start_methods() \
                 and sys.platform.startswith("linux") else "spawn"
@@ -371,6 +401,13 @@ class A3CTrainer:
         for m in self.aux.values():
             m.share_memory()
         self.episodes_done = self.start_episode
+        self._eval_env: Any = None
+        self._eval_writer: Any = None
+        self._last_eval = -1
+        self.eval_s = 0.0
+        """Seconds spent in periodic evaluation by this call of :meth:`train`."""
+        if self.ckpt is not None and self.out_dir is not None:
+            truncate_csv(self.out_dir / "eval.csv", self.start_episode)
 
     # -- hooks for the algorithms built on this trainer (SAVN, ISAR) ----------------------
     def build_optimizer(self, params: list[torch.Tensor]) -> torch.optim.Optimizer:
@@ -412,10 +449,19 @@ class A3CTrainer:
         tmp.write_text(json.dumps(self.resolved_config(), indent=1))
         os.replace(tmp, cfg_path)
         cbs: list[Callback] = [CSVMetrics(self.out_dir / "metrics.csv")]
-        tb = tensorboard_callback(self.out_dir / "tb") if self.tensorboard else None
-        if tb is not None:
-            cbs.append(tb)
         return cbs
+
+    def _tensorboard(self) -> list[Callback]:
+        if self.tensorboard is None or self.tensorboard is False:
+            return []
+        if self.tensorboard is True:
+            if self.out_dir is None:
+                raise ConfigError("tensorboard=True needs a run folder; pass a folder instead")
+            folder: Any = self.out_dir / "tb"
+        else:
+            folder = self.tensorboard
+        tb = tensorboard_callback(folder, required=True)
+        return [tb] if tb is not None else []
 
     def checkpoint_meta(self, episodes: int) -> dict[str, Any]:
         return make_meta(self.net_cfg, self.frozen, self.env, algorithm=self.algorithm,
@@ -431,11 +477,12 @@ class A3CTrainer:
     # -- training ---------------------------------------------------------------------------
     def train(self) -> TrainResult:
         """Run until ``cfg.episodes`` episodes in total; write the final checkpoint."""
-        cbs = self._prepare_out_dir() + self.callbacks
+        cbs = self._prepare_out_dir() + self._tensorboard() + self.callbacks
         t0 = time.perf_counter()
         self._t_start, self._elapsed_base = t0, self._resumed_elapsed()
         result = TrainResult(self.model, self.start_episode, 0, 0.0, self.start_episode,
                              out_dir=self.out_dir)
+        self._eval_every = self.eval_interval()
         for cb in cbs:
             cb.on_train_start({"episodes": self.cfg.episodes, "start_episode": self.start_episode,
                                "workers": self.cfg.workers, "out_dir": self.out_dir})
@@ -444,7 +491,10 @@ class A3CTrainer:
                 self._train_inline(cbs, result)
             else:
                 self._train_workers(cbs, result)
+            if self._eval_every and self._last_eval != self.episodes_done:  # the final policy
+                self.evaluate_now(cbs, result)
             result.wall_s = time.perf_counter() - t0
+            result.eval_s = self.eval_s
             result.episodes = self.episodes_done
             if self.out_dir is not None:
                 ck = self.out_dir / "checkpoints"
@@ -477,15 +527,70 @@ class A3CTrainer:
             return 0.0
         from geonav.policy.callbacks import read_metrics
 
-        done = [r for r in read_metrics(metrics)
-                if r.get("elapsed_s") is not None and r["episode"] <= self.start_episode]
+        rows = [r for r in read_metrics(metrics) if r["episode"] <= self.start_episode]
+        self._steps_base = int(sum(int(r.get("length") or 0) for r in rows))
+        done = [r for r in rows if r.get("elapsed_s") is not None]
         return float(done[-1]["elapsed_s"]) if done else 0.0
+
+    # -- periodic evaluation (issue 10: greedy and sampled from every start) --------------
+    def eval_interval(self) -> int:
+        """Episodes between periodic evaluations (0: none, not even at the end)."""
+        every = self.cfg.eval_every
+        if every != -1:
+            return every
+        from geonav.policy.evaluation import all_starts
+
+        n = len(all_starts(self.env, self.cfg.eval_max_starts, self.cfg.seed))
+        return int(math.ceil(5 * n / 10.0) * 10)
+
+    def evaluate_now(self, cbs: list[Callback], result: TrainResult) -> dict[str, Any]:
+        """Evaluate a snapshot of the live policy; append the row to eval.csv and tell
+        the callbacks."""
+        import copy
+
+        from geonav.policy.evaluation import EVAL_FIELDS, evaluate_both
+
+        t0 = time.perf_counter()
+        if self._eval_env is None:
+            self._eval_env = self.env_factory()
+        snapshot = copy.deepcopy(self.model)  # no RNG draw; workers may step the original
+        res = evaluate_both(snapshot, self._eval_env, frozen=self.frozen,
+                            max_starts=self.cfg.eval_max_starts, seed=self.cfg.seed,
+                            threads=self.cfg.torch_threads)
+        self.eval_s += time.perf_counter() - t0
+        row = {"episode": self.episodes_done, "env_steps": self.total_env_steps(result),
+               "elapsed_s": round(self._elapsed_base + time.perf_counter() - self._t_start, 3),
+               "eval_s": round(time.perf_counter() - t0, 3), **res["row"]}
+        self._last_eval = self.episodes_done
+        if self.out_dir is not None:
+            import csv
+
+            path = self.out_dir / "eval.csv"
+            new = not path.exists() or path.stat().st_size == 0
+            with open(path, "a", newline="") as f:
+                w = csv.DictWriter(f, fieldnames=(*EVAL_FIELDS, "eval_s"), extrasaction="ignore")
+                if new:
+                    w.writeheader()
+                w.writerow(row)
+        result.evals.append(row)
+        for cb in cbs:  # duck-typed callbacks may lack the hook
+            hook = getattr(cb, "on_eval", None)
+            if hook is not None:
+                hook(row)
+        return row
+
+    def total_env_steps(self, result: TrainResult) -> int:
+        """Env steps of the whole run so far (resumed episodes included when known)."""
+        return int(self._steps_base + result.env_steps)
+
+    _steps_base: int = 0
 
     def _on_record(self, rec: dict[str, Any], cbs: list[Callback], result: TrainResult,
                    rng: Callable[[], dict[str, Any] | None]) -> bool:
         """Handle one finished episode in the main process; False asks to stop."""
         self.episodes_done += 1
         result.env_steps += int(rec["length"])
+        rec["env_steps"] = self.total_env_steps(result)  # running total, resumes included
         rec["elapsed_s"] = round(self._elapsed_base + time.perf_counter() - self._t_start, 3)
         if self.keep_records:
             result.records.append(rec)
@@ -493,6 +598,10 @@ class A3CTrainer:
         for cb in cbs:
             if cb.on_episode(rec) is False:
                 go_on = False
+        if self._eval_every and self.episodes_done % self._eval_every == 0:
+            self.evaluate_now(cbs, result)
+        if self.cfg.total_steps and rec["env_steps"] >= self.cfg.total_steps:
+            go_on = False  # the step budget is spent
         every = self.cfg.checkpoint_every
         if self.out_dir is not None and every and self.episodes_done % every == 0:
             path = self.save(self.out_dir / "checkpoints" / "latest.pt", self.episodes_done,

@@ -12,6 +12,8 @@ from collections import deque
 from pathlib import Path
 from typing import Any
 
+from geonav.errors import MissingExtra
+
 log = logging.getLogger(__name__)
 
 METRIC_FIELDS = ("episode", "worker", "task", "task_index", "return", "length", "success",
@@ -33,6 +35,9 @@ class Callback:
     def on_episode(self, record: dict[str, Any]) -> bool | None:
         """One finished episode (see ``METRIC_FIELDS``)."""
         return None
+
+    def on_eval(self, row: dict[str, Any]) -> None:
+        """A periodic greedy + sampled evaluation (``geonav.policy.evaluation.EVAL_FIELDS``)."""
 
     def on_checkpoint(self, path: Path, episodes: int) -> None:
         """A checkpoint was written."""
@@ -74,35 +79,116 @@ def _fmt(v: Any) -> Any:
 
 
 class TensorBoardMetrics(Callback):
-    """Per-episode scalars to TensorBoard (only when the ``tensorboard`` extra is installed)."""
+    """Scalars to TensorBoard under Stable-Baselines3's tag names, x = cumulative env steps.
+
+    So that a geonav run and an SB3 run on the same task overlay in one TensorBoard:
+
+    * ``rollout/ep_rew_mean``, ``rollout/ep_len_mean``, ``rollout/success_rate``: means
+      over the last ``window`` episodes (SB3's ``stats_window_size``, 100), plus geonav's
+      ``rollout/spl_mean`` and ``rollout/collisions_mean``;
+    * ``train/policy_loss``, ``train/value_loss``, ``train/entropy_loss`` (minus the
+      mean entropy, SB3's sign) of each episode's update;
+    * ``eval/success_rate`` (and geonav's ``eval/spl``, ``eval/sampled_*``) from
+      :meth:`on_eval`, as SB3's ``EvalCallback`` names them;
+    * ``time/episodes``: episodes so far.
+
+    The x-axis is the running total of env steps: the record's ``env_steps`` when it is a
+    running total (it includes earlier runs after a resume), else the sum of the episode
+    lengths this callback has seen. Needs the ``tensorboard`` extra.
+
+    Args:
+        log_dir: the folder for the event files.
+        window: episodes in the rollout means.
+    """
 
     def __init__(self, log_dir: str | os.PathLike[str], window: int = 100) -> None:
         from torch.utils.tensorboard import SummaryWriter  # ImportError without tensorboard
 
         self.writer = SummaryWriter(str(log_dir))
-        self.recent: deque[float] = deque(maxlen=window)
+        self.window = int(window)
+        self.returns: deque[float] = deque(maxlen=window)
+        self.lengths: deque[float] = deque(maxlen=window)
+        self.successes: deque[float] = deque(maxlen=window)
+        self.spls: deque[float] = deque(maxlen=window)
+        self.collisions: deque[float] = deque(maxlen=window)
+        self.env_steps = 0
+        self.episodes = 0
+
+    def _step(self, record: dict[str, Any]) -> int:
+        self.env_steps += int(record.get("length") or 0)
+        total = record.get("env_steps")
+        if total is not None and int(total) > self.env_steps:  # a running total
+            self.env_steps = int(total)
+        return self.env_steps
 
     def on_episode(self, record: dict[str, Any]) -> None:
-        ep = int(record["episode"])
-        self.recent.append(float(record["success"]))
-        for key in ("return", "length", "spl", "collisions", "policy_loss", "value_loss",
-                    "entropy"):
+        x = self._step(record)
+        self.episodes += 1
+        for buf, key in ((self.returns, "return"), (self.lengths, "length"),
+                         (self.successes, "success"), (self.spls, "spl"),
+                         (self.collisions, "collisions")):
             if record.get(key) is not None:
-                self.writer.add_scalar(f"episode/{key}", float(record[key]), ep)
-        self.writer.add_scalar("episode/success_rate_ma", sum(self.recent) / len(self.recent),
-                               ep)
+                buf.append(float(record[key]))
+        add = self.writer.add_scalar
+        for tag, buf in (("rollout/ep_rew_mean", self.returns),
+                         ("rollout/ep_len_mean", self.lengths),
+                         ("rollout/success_rate", self.successes),
+                         ("rollout/spl_mean", self.spls),
+                         ("rollout/collisions_mean", self.collisions)):
+            if buf:
+                add(tag, sum(buf) / len(buf), x)
+        for tag, key, sign in (("train/policy_loss", "policy_loss", 1.0),
+                               ("train/value_loss", "value_loss", 1.0),
+                               ("train/entropy_loss", "entropy", -1.0)):
+            if record.get(key) is not None:
+                add(tag, sign * float(record[key]), x)
+        add("time/episodes", self.episodes, x)
+
+    def on_eval(self, row: dict[str, Any]) -> None:
+        """A periodic evaluation row (``geonav.policy.evaluation.EVAL_FIELDS``).
+
+        The greedy policy's figures go under SB3's ``EvalCallback`` names (it evaluates
+        deterministically by default): ``eval/success_rate``, plus ``eval/spl`` and
+        ``eval/length_ratio``; the sampled policy's under ``eval/sampled_*``; and
+        ``eval/mean_reward``, ``eval/mean_ep_length`` when the row has them.
+        """
+        x = int(row.get("env_steps") or self.env_steps)
+        for tag, key in (("eval/success_rate", "greedy_sr"), ("eval/spl", "greedy_spl"),
+                         ("eval/length_ratio", "greedy_length_ratio"),
+                         ("eval/collisions", "greedy_collisions"),
+                         ("eval/sampled_success_rate", "sampled_sr"),
+                         ("eval/sampled_spl", "sampled_spl"),
+                         ("eval/mean_reward", "mean_reward"),
+                         ("eval/mean_ep_length", "mean_ep_length")):
+            value = row.get(key)
+            if value is not None and value == value:  # NaN: nothing to plot
+                self.writer.add_scalar(tag, float(value), x)
 
     def on_train_end(self, result: Any) -> None:
+        self.close()
+
+    def close(self) -> None:
         self.writer.close()
 
 
-def tensorboard_callback(log_dir: str | os.PathLike[str]) -> Callback | None:
-    """A :class:`TensorBoardMetrics`, or None (logged) when tensorboard is not installed."""
+def tensorboard_callback(log_dir: str | os.PathLike[str], *,
+                         required: bool = False) -> Callback | None:
+    """A :class:`TensorBoardMetrics` writing to ``log_dir`` (for ``--tensorboard DIR``).
+
+    TensorBoard logging is on only where a caller asks for it with a folder.
+
+    Args:
+        log_dir: the event-file folder.
+        required: raise :class:`MissingExtra` when tensorboard is not installed (what an
+            explicit ``--tensorboard`` should do); otherwise log a warning and return None.
+    """
     try:
         return TensorBoardMetrics(log_dir)
-    except ImportError:
-        log.info("tensorboard is not installed (pip install 'geonav[tensorboard]'); "
-                 "metrics go to the CSV only")
+    except ImportError as err:
+        if required:
+            raise MissingExtra("tensorboard", "tensorboard", "--tensorboard logging") from err
+        log.warning("tensorboard is not installed (pip install 'geonav[tensorboard]'); "
+                    "metrics go to the CSV only")
         return None
 
 
@@ -121,9 +207,54 @@ def read_metrics(path: str | os.PathLike[str]) -> list[dict[str, Any]]:
     return rows
 
 
+def curve_window(episodes: int, window: int | None = None) -> int:
+    """Moving-average window for a run of ``episodes``: ``window`` if given, else a tenth
+    of the run (1..500), never more than the run."""
+    if window is None:
+        window = min(500, max(1, round(episodes / 10)))
+    return max(1, min(int(window), max(1, episodes)))
+
+
+def running_env_steps(rows: list[dict[str, Any]]) -> Any:
+    """Cumulative env steps at the end of each episode row (rows in episode order).
+
+    The CSV's ``env_steps`` is used when it is a running total (non-decreasing, and at
+    its end at least half the summed episode lengths: after a resume it also counts the
+    earlier runs); otherwise the episode lengths are summed.
+    """
+    import numpy as np
+
+    length = np.array([r.get("length") or 0.0 for r in rows], float)
+    steps = np.array([np.nan if r.get("env_steps") is None else r["env_steps"] for r in rows],
+                     float)
+    summed = np.cumsum(length)
+    if len(rows) and np.isfinite(steps).all() and (np.diff(steps) >= 0).all() \
+            and steps[-1] >= 0.5 * summed[-1] and (len(rows) == 1 or steps[-1] > steps[0]):
+        return steps
+    return summed
+
+
+def _trailing_mean(x: Any, w: int) -> Any:
+    """Mean of the last ``w`` values at each index (fewer at the start: no empty head)."""
+    import numpy as np
+
+    c = np.concatenate([[0.0], np.cumsum(x)])
+    i = np.arange(1, len(x) + 1)
+    lo = np.maximum(0, i - w)
+    return (c[i] - c[lo]) / (i - lo)
+
+
 def plot_learning_curve(metrics_csv: str | os.PathLike[str], out_png: str | os.PathLike[str],
-                        window: int = 100) -> Path:
-    """Success-rate moving average and return per episode, as a PNG (matplotlib, Agg)."""
+                        window: int | None = None) -> Path:
+    """Success rate and return against episodes (bottom axis) and env steps (top axis).
+
+    Args:
+        metrics_csv: a metrics CSV (:data:`METRIC_FIELDS`).
+        out_png: the PNG to write (atomically).
+        window: moving-average window in episodes; default :func:`curve_window` (a
+            tenth of the run), so a 50-episode run and a 50 000-episode run both show a
+            curve. The first ``window - 1`` points average what there is so far.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -134,19 +265,23 @@ def plot_learning_curve(metrics_csv: str | os.PathLike[str], out_png: str | os.P
     ep = np.array([r["episode"] for r in rows], float)
     succ = np.array([r["success"] for r in rows], float)
     ret = np.array([r["return"] for r in rows], float)
-    w = max(1, min(window, len(rows)))
-    kernel = np.ones(w) / w
-    sr = np.convolve(succ, kernel, mode="valid") if len(rows) else succ
-    rma = np.convolve(ret, kernel, mode="valid") if len(rows) else ret
-    fig, (a1, a2) = plt.subplots(2, 1, figsize=(7, 5), sharex=True)
-    a1.plot(ep[w - 1:], sr)
+    steps = running_env_steps(rows)
+    w = curve_window(len(rows), window)
+    sr, rma = _trailing_mean(succ, w), _trailing_mean(ret, w)
+    fig, (a1, a2) = plt.subplots(2, 1, figsize=(7, 5.4), sharex=True)
+    a1.plot(ep, sr)
     a1.set_ylabel(f"success rate (MA {w})")
     a1.set_ylim(-0.02, 1.02)
     a1.grid(alpha=0.3)
+    if len(rows) > 1 and (np.diff(ep) > 0).all() and (np.diff(steps) > 0).all():
+        top = a1.secondary_xaxis("top", functions=(lambda e: np.interp(e, ep, steps),
+                                                   lambda s: np.interp(s, steps, ep)))
+        top.set_xlabel("env steps")
     a2.plot(ep, ret, alpha=0.25, lw=0.8, label="return")
-    a2.plot(ep[w - 1:], rma, label=f"MA {w}")
+    a2.plot(ep, rma, label=f"MA {w}")
     a2.set_ylabel("return")
-    a2.set_xlabel("episode")
+    total = f", {int(steps[-1]):,} env steps" if len(rows) else ""
+    a2.set_xlabel(f"episode ({len(rows)} episodes{total})")
     a2.legend(loc="lower right")
     a2.grid(alpha=0.3)
     fig.tight_layout()

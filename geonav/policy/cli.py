@@ -16,27 +16,17 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from geonav.cliutil import (
+    TqdmProgress,
+    load_toml,
+    nonneg_int,
+    positive_float,
+    positive_int,
+)
 from geonav.errors import ConfigError
 
 # EnvFactory lives in the library (experiments use it too); re-exported for the CLIs.
 from geonav.policy.envs import EnvFactory  # noqa: E402,F401
-
-
-def _load_toml(path: str | None) -> dict[str, Any]:
-    if path is None:
-        return {}
-    try:
-        import tomllib
-    except ModuleNotFoundError:  # pragma: no cover - Python 3.10
-        import tomli as tomllib  # type: ignore[no-redef]
-
-    try:
-        with open(path, "rb") as f:
-            return tomllib.load(f)
-    except FileNotFoundError as err:
-        raise ConfigError(f"config file {path} does not exist") from err
-    except tomllib.TOMLDecodeError as err:
-        raise ConfigError(f"config file {path} is not valid TOML: {err}") from err
 
 
 def add_parser(subparsers: Any) -> None:
@@ -44,68 +34,77 @@ def add_parser(subparsers: Any) -> None:
     from geonav.policy.config import ENCODERS, A3CConfig, NetConfig, field_help
 
     nh, ah = field_help(NetConfig), field_help(A3CConfig)
-    p = subparsers.add_parser("train", help="train a navigation policy (A3C)",
+    p = subparsers.add_parser("train", help="train a navigation policy (A3C, SAVN, ISAR, PPO)",
                               description="Train a policy on a scene's tasks. The run folder "
                               "gets config.json, metrics.csv, checkpoints/ and "
                               "learning_curve.png.")
-    p.add_argument("--algo", default="a3c", choices=["a3c", "savn", "isar"],
-                   help="training algorithm")
+    p.add_argument("--algo", default="a3c", choices=["a3c", "savn", "isar", "ppo"],
+                   help="training algorithm (ppo: batched engine only)")
     p.add_argument("--scene", required=True, help="scene package folder")
     p.add_argument("--tasks", required=True, help="task set JSON")
-    p.add_argument("--altitude", type=float, default=None, metavar="M",
+    p.add_argument("--altitude", type=positive_float, default=None, metavar="M",
                    help="fly every task at this altitude in metres (default: the tasks')")
-    p.add_argument("--episodes", type=int, default=None, help=ah["episodes"])
-    p.add_argument("--workers", type=int, default=None, help=ah["workers"])
+    p.add_argument("--episodes", type=positive_int, default=None, help=ah["episodes"])
+    p.add_argument("--workers", type=nonneg_int, default=None, help=ah["workers"])
     p.add_argument("--out", required=True, metavar="RUN_DIR", help="run folder")
     p.add_argument("--resume", default=None, metavar="CKPT", help="continue from a checkpoint "
                    "(episode count, weights, optimiser and RNG state)")
-    p.add_argument("--seed", type=int, default=None, help=ah["seed"])
-    p.add_argument("--obs-size", type=int, default=None, metavar="PX",
+    p.add_argument("--seed", type=nonneg_int, default=None, help=ah["seed"])
+    p.add_argument("--obs-size", type=positive_int, default=None, metavar="PX",
                    help="observation side in pixels (default: the task set's camera)")
     p.add_argument("--encoder", choices=ENCODERS, default=None, help=nh["encoder"])
     p.add_argument("--encoder-weights", default=None, metavar="PATH", help=nh["encoder_weights"])
     p.add_argument("--prev-view-input", action="store_true", default=None,
                    help=nh.get("prev_view_input"))
-    p.add_argument("--t-max", type=int, default=None, help=ah["t_max"])
-    p.add_argument("--lr", type=float, default=None, help=ah["lr"])
-    p.add_argument("--max-steps", type=int, default=None, help="episode cap override")
-    p.add_argument("--checkpoint-every", type=int, default=None, help=ah["checkpoint_every"])
+    p.add_argument("--t-max", type=positive_int, default=None, help=ah["t_max"])
+    p.add_argument("--lr", type=positive_float, default=None, help=ah["lr"])
+    p.add_argument("--max-steps", type=positive_int, default=None, help="episode cap override")
+    p.add_argument("--checkpoint-every", type=positive_int, default=None,
+                   help=ah["checkpoint_every"])
     p.add_argument("--config", default=None, metavar="TOML",
                    help="TOML file with [net] and [a3c] tables; command-line options win")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    from geonav.policy.meta_cli import add_algo_args, add_parsers
+    from geonav.policy.meta_cli import add_algo_args, add_engine_args, add_parsers
 
     add_algo_args(p)
+    add_engine_args(p)
     p.set_defaults(handler=run_train)
 
     e = subparsers.add_parser("eval", help="evaluate a policy checkpoint",
-                              description="Success rate, SPL, mean length and collisions from "
-                              "fixed seeded starts.")
+                              description="Greedy and sampled success rate, SPL, length / "
+                              "shortest path and collisions from every valid start cell of "
+                              "every task (a seeded sample above --max-starts), beside the "
+                              "task's exact random-walk success.")
     e.add_argument("checkpoint", metavar="CKPT", help="policy checkpoint (.pt)")
     e.add_argument("--scene", required=True, help="scene package folder")
     e.add_argument("--tasks", required=True, help="task set JSON")
-    e.add_argument("--altitude", type=float, default=None, metavar="M",
+    e.add_argument("--altitude", type=positive_float, default=None, metavar="M",
                    help="fly every task at this altitude (default: the tasks')")
-    e.add_argument("--episodes", type=int, default=20, help="seeded starts per task")
-    e.add_argument("--greedy", action="store_true", help="argmax actions (default: sampled)")
-    e.add_argument("--seed", type=int, default=0, help="seed of the starts and sampled actions")
-    e.add_argument("--max-steps", type=int, default=None, help="episode cap override")
+    e.add_argument("--max-starts", type=positive_int, default=500, metavar="N",
+                   help="evaluate at most N start cells in all (a seeded sample; default 500)")
+    e.add_argument("--seed", type=nonneg_int, default=0, help="seed of the start sample and of "
+                   "sampled actions")
+    e.add_argument("--max-steps", type=positive_int, default=None, help="episode cap override")
     e.add_argument("--json", default=None, metavar="FILE", help="also write the results as JSON")
     e.add_argument("--no-progress", action="store_true", help="no progress bar")
     e.set_defaults(handler=run_eval)
     add_parsers(subparsers)
 
 
-def resolve_train_configs(args: argparse.Namespace) -> tuple[Any, Any]:
-    """(NetConfig, A3CConfig) from defaults, the TOML file and the command line."""
+def resolve_train_configs(args: argparse.Namespace, table: str = "a3c",
+                          cls: Any = None) -> tuple[Any, Any]:
+    """(NetConfig, A3CConfig) from defaults, the TOML file and the command line (``table``
+    and ``cls``: another A3CConfig subclass, e.g. ``[ppo]`` and PPOConfig)."""
     from geonav.policy.config import A3CConfig, LossConfig, NetConfig, from_dict
 
-    toml = _load_toml(getattr(args, "config", None))
-    unknown = sorted(set(toml) - {"net", "a3c"})
+    cls = cls or A3CConfig
+    toml = load_toml(getattr(args, "config", None))
+    unknown = sorted(set(toml) - {"net", table})
     if unknown:
-        raise ConfigError(f"unknown table(s) {unknown} in {args.config}; use [net] and [a3c]")
+        raise ConfigError(f"unknown table(s) {unknown} in {args.config}; use [net] and "
+                          f"[{table}]")
     net_d = dict(toml.get("net", {}))
-    a3c_d = dict(toml.get("a3c", {}))
+    a3c_d = dict(toml.get(table, {}))
     for key, val in (("encoder", args.encoder), ("encoder_weights", args.encoder_weights),
                      ("obs_size_px", args.obs_size),
                      ("prev_view_input", getattr(args, "prev_view_input", None) or None)):
@@ -113,97 +112,84 @@ def resolve_train_configs(args: argparse.Namespace) -> tuple[Any, Any]:
             net_d[key] = val
     for key, val in (("episodes", args.episodes), ("workers", args.workers),
                      ("seed", args.seed), ("t_max", args.t_max), ("lr", args.lr),
-                     ("checkpoint_every", args.checkpoint_every)):
+                     ("checkpoint_every", args.checkpoint_every),
+                     ("total_steps", getattr(args, "total_steps", None))):
         if val is not None:
             a3c_d[key] = val
     if "loss" in a3c_d and not isinstance(a3c_d["loss"], dict):
-        raise ConfigError("[a3c.loss] must be a table")
-    a3c_d.setdefault("loss", {})
-    a3c = from_dict(A3CConfig, {**a3c_d, "loss": a3c_d["loss"] or {}})
+        raise ConfigError(f"[{table}.loss] must be a table")
+    if "loss" in a3c_d or cls is A3CConfig:
+        a3c_d["loss"] = a3c_d.get("loss") or {}
+    a3c = from_dict(cls, a3c_d)
     if not isinstance(a3c.loss, LossConfig):
-        raise ConfigError("invalid [a3c.loss] table")
+        raise ConfigError(f"invalid [{table}.loss] table")
     return from_dict(NetConfig, net_d) if net_d else None, a3c
-
-
-class _TqdmProgress:
-    """Turns trainer callbacks into a tqdm bar (success-rate moving average in the postfix)."""
-
-    def __init__(self, disable: bool) -> None:
-        from tqdm import tqdm  # type: ignore[import-untyped]
-
-        from geonav.policy.callbacks import Callback
-
-        class _CB(Callback):
-            def on_train_start(cb, info: dict[str, Any]) -> None:
-                cb.bar = tqdm(total=info["episodes"], initial=info["start_episode"],
-                              unit="ep", disable=disable, dynamic_ncols=True)
-                cb.recent: list[float] = []
-
-            def on_episode(cb, record: dict[str, Any]) -> None:
-                cb.recent = (cb.recent + [float(record["success"])])[-100:]
-                cb.bar.update(1)
-                cb.bar.set_postfix(sr=f"{sum(cb.recent) / len(cb.recent):.2f}",
-                                   len=record["length"])
-
-            def on_train_end(cb, result: Any) -> None:
-                if hasattr(cb, "bar"):
-                    cb.bar.close()
-
-        self.callback = _CB()
 
 
 def run_train(args: argparse.Namespace) -> int:
     """Handler of ``geonav train``."""
-    from geonav.policy.a3c import A3CTrainer
+    from geonav.policy.engine import build_trainer
 
-    if args.algo != "a3c":
+    if args.algo not in ("a3c", "ppo"):
         from geonav.policy.meta_cli import run_train_algo
 
         return run_train_algo(args)
-    net_cfg, a3c = resolve_train_configs(args)
+    if args.algo == "ppo":
+        from geonav.policy.batched.ppo import PPOConfig
+
+        net_cfg, a3c = resolve_train_configs(args, "ppo", PPOConfig)
+    else:
+        net_cfg, a3c = resolve_train_configs(args)
     obs = args.obs_size if args.obs_size is not None else (
         net_cfg.obs_size_px if net_cfg is not None else None)
     factory = EnvFactory(str(args.scene), str(args.tasks), args.altitude, obs,
                          args.max_steps)
     if net_cfg is not None and obs is None:  # take the task set camera's size
         net_cfg = replace(net_cfg, obs_size_px=int(factory().observation_space["image"].shape[0]))
-    progress = _TqdmProgress(args.no_progress)
-    trainer = A3CTrainer(factory, net_cfg, a3c, out_dir=args.out, resume=args.resume,
-                         callbacks=[progress.callback])
-    result = trainer.train()
-    sr = [r["success"] for r in result.records[-100:]]
-    print(f"trained {result.episodes} episodes ({result.env_steps} steps, "
-          f"{result.steps_per_s:.0f} steps/s); last-100 success rate "
-          f"{(sum(sr) / len(sr)) if sr else float('nan'):.2f}; checkpoint {result.checkpoint}")
+    from geonav.policy.meta_cli import extra_callbacks, run_summary
+
+    progress = TqdmProgress(args.no_progress)
+    trainer = build_trainer(args.algo, args.engine, factory, net_cfg, a3c, batch=args.batch,
+                            device=args.device, out_dir=args.out, resume=args.resume,
+                            callbacks=[progress.callback, *extra_callbacks(args)])
+    print(run_summary(trainer.train()))
     return 0
 
 
 def run_eval(args: argparse.Namespace) -> int:
-    """Handler of ``geonav eval``."""
-    from tqdm import tqdm
-
+    """Handler of ``geonav eval``: greedy and sampled from every start, beside chance."""
+    from geonav.difficulty import env_difficulty
     from geonav.policy.checkpoint import check_compatible, load_checkpoint
-    from geonav.policy.evaluation import evaluate
+    from geonav.policy.evaluation import evaluate_both
 
+    if args.max_starts < 1:
+        raise ConfigError(f"--max-starts must be >= 1, got {args.max_starts}")
     ckpt = load_checkpoint(args.checkpoint)
     factory = EnvFactory(str(args.scene), str(args.tasks), args.altitude,
                          int(ckpt.meta["obs_size_px"]), args.max_steps)
     env = factory()
     check_compatible(ckpt.meta, env, path=ckpt.path)
     model = ckpt.build_model()
-    bar = tqdm(total=args.episodes * len(env.unwrapped.tasks), unit="ep",
-               disable=args.no_progress)
-    res = evaluate(model, env, frozen=ckpt.build_encoder(), episodes_per_task=args.episodes,
-                   seed=args.seed, greedy=args.greedy,
-                   progress=lambda done, total: bar.update(1))
-    bar.close()
-    summary = {"checkpoint": str(ckpt.path), "mode": "greedy" if args.greedy else "sampled",
-               **res.summary()}
+    res = evaluate_both(model, env, frozen=ckpt.build_encoder(), max_starts=args.max_starts,
+                        seed=args.seed)
+    chance = env_difficulty(env)
+    row = res["row"]
+    summary = {"checkpoint": str(ckpt.path), "starts": res["starts"],
+               "greedy": {k[7:]: v for k, v in row.items() if k.startswith("greedy_")},
+               "sampled": {k[8:]: v for k, v in row.items() if k.startswith("sampled_")},
+               "random_walk_sr": round(chance["random_walk_sr"], 6),
+               "blind_sr": round(chance["blind_sr"], 6),
+               "mean_shortest_path": round(chance["mean_shortest_path"], 3)}
+    g, s = summary["greedy"], summary["sampled"]
+    print(f"{res['starts']} starts: greedy SR {g['sr']:.3f} SPL {g['spl']:.3f} | sampled SR "
+          f"{s['sr']:.3f} SPL {s['spl']:.3f} | chance: random walk {chance['random_walk_sr']:.3f},"
+          f" best state-blind {chance['blind_sr']:.3f}", file=sys.stderr)
     print(json.dumps(summary))
     if args.json:
         out = Path(args.json)
         tmp = out.with_name(f".{out.name}.tmp")
-        tmp.write_text(json.dumps({**summary, "per_episode": res.episodes}, indent=1))
+        per = {"greedy": res["greedy"].episodes, "sampled": res["sampled"].episodes}
+        tmp.write_text(json.dumps({**summary, "per_episode": per}, indent=1))
         os.replace(tmp, out)
     return 0
 

@@ -13,6 +13,8 @@ from typing import Any
 from geonav.errors import ConfigError
 
 ENCODERS = ("cnn", "random", "resnet18")
+INITS = ("orthogonal", "savn")
+INPUT_NORMS = ("center", "none")
 
 
 @dataclass(frozen=True)
@@ -39,6 +41,19 @@ class NetConfig:
     """Number of discrete actions (GeoNavEnv: forward, right, left, backward)."""
     random_encoder_seed: int = 0
     """Seed of the frozen random CNN's weights (encoder='random')."""
+    input_norm: str = "center"
+    """Image scaling before the CNN encoders ('cnn', 'random'): 'center' maps uint8 to
+    (x/255 - 0.5)/0.25; 'none' to [0, 1] (geonav <= 0.1; ResNet18 always uses ImageNet's
+    normalisation). Centred inputs are one of the three fixes of issue 10."""
+    init: str = "orthogonal"
+    """Weight initialisation: 'orthogonal' (conv/linear layers orthogonal with ReLU gain
+    sqrt(2), LSTM orthogonal, zero biases; keeps activations O(1) through the trunk) or
+    'savn' (allenai/savn: Xavier-uniform, which halves the signal at every ReLU layer)."""
+    actor_init_std: float | None = None
+    """Row norm of the actor head's initial weights; None: 1.0 for init='orthogonal', 0.01
+    for 'savn'. At 0.01 the policy gradient reaching the image layers is 100x smaller
+    than the critic's and a state-blind action bias wins (issue 10); 1.0 lets the
+    image-dependent part of the policy learn first."""
     prev_view_input: bool = False
     """Add the extra input slot E(o^prev) (ALGORITHMS.md (e), option B): the encoder features
     of the view at the same cell at the previous curriculum stage's altitude, embedded by
@@ -51,6 +66,12 @@ class NetConfig:
             raise ConfigError(f"encoder must be one of {ENCODERS}, not {self.encoder!r}")
         if not 16 <= self.obs_size_px <= 1024:
             raise ConfigError(f"obs_size_px must be within 16..1024, got {self.obs_size_px}")
+        if self.input_norm not in INPUT_NORMS:
+            raise ConfigError(f"input_norm must be one of {INPUT_NORMS}, not {self.input_norm!r}")
+        if self.init not in INITS:
+            raise ConfigError(f"init must be one of {INITS}, not {self.init!r}")
+        if self.actor_init_std is not None and not self.actor_init_std > 0:
+            raise ConfigError(f"actor_init_std must be positive, got {self.actor_init_std}")
         for name in ("embed_dim", "action_embed_dim", "hidden_size", "lstm_size", "n_actions"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"{name} must be >= 1, got {getattr(self, name)}")
@@ -83,6 +104,9 @@ class A3CConfig:
 
     episodes: int = 1000
     """Training episodes in total, counted over all workers (including resumed ones)."""
+    total_steps: int = 0
+    """Env-step budget in total (including resumed steps; 0: none). Training ends at
+    whichever budget, episodes or steps, runs out first (at an episode end)."""
     workers: int = 2
     """Worker processes; 0 runs the deterministic single-process mode."""
     t_max: int = 15
@@ -107,18 +131,32 @@ class A3CConfig:
     """Also keep checkpoints/episode_<n>.pt for every periodic checkpoint."""
     torch_threads: int = 1
     """Torch intra-op threads per worker (one per worker is fastest on a small CPU)."""
+    eval_every: int = -1
+    """Evaluate the live policy greedily and sampled from every start cell (up to
+    eval_max_starts) every this many episodes, into eval.csv, and once at the end;
+    -1: 5 x the number of evaluation starts (rounded up to 10), which keeps evaluation
+    near or under 10 % of training time; 0: no evaluation at all."""
+    eval_max_starts: int = 100
+    """Start cells per periodic evaluation (all of them when there are fewer; a fixed
+    seeded sample otherwise)."""
     loss: LossConfig = field(default_factory=LossConfig)
     """Loss settings."""
 
     def __post_init__(self) -> None:
         if self.episodes < 1:
             raise ConfigError(f"episodes must be >= 1, got {self.episodes}")
+        if self.total_steps < 0:
+            raise ConfigError(f"total_steps must be >= 0, got {self.total_steps}")
         if self.workers < 0:
             raise ConfigError(f"workers must be >= 0, got {self.workers}")
         if self.t_max < 1:
             raise ConfigError(f"t_max must be >= 1, got {self.t_max}")
         if self.lr <= 0:
             raise ConfigError(f"lr must be positive, got {self.lr}")
+        if self.eval_every < -1:
+            raise ConfigError(f"eval_every must be >= -1, got {self.eval_every}")
+        if self.eval_max_starts < 1:
+            raise ConfigError(f"eval_max_starts must be >= 1, got {self.eval_max_starts}")
         if self.checkpoint_every < 0:
             raise ConfigError(f"checkpoint_every must be >= 0, got {self.checkpoint_every}")
 

@@ -4,7 +4,7 @@ Stages at ``levels_m`` (75, 45, 15 m by default) on the same lattice (the task s
 tasks ``.with_alt``), each starting from the previous stage's final policy (the first
 from ``init``, weights only) and trained with the base algorithm (ISAR by default) with
 T_max = 120. A stage ends when the convergence criterion of ALGORITHMS.md (f) holds on
-its training episodes (:func:`geonav.experiments.convergence.episodes_to_convergence`)
+its training episodes (:func:`geonav.convergence.episodes_to_convergence`)
 or when its budget is spent. With the KL teacher (option A, default) a stage's
 interaction losses gain lambda * KL(pi_T || pi_theta), pi_T being the previous stage's
 frozen final policy fed the render at the same cell at the previous altitude, lambda
@@ -49,7 +49,7 @@ class ConvergenceStop(Callback):
         self.converged_at: int | None = None
 
     def on_episode(self, record: dict[str, Any]) -> bool:
-        from geonav.experiments.convergence import episodes_to_convergence
+        from geonav.convergence import episodes_to_convergence
 
         self.successes.append(bool(record["success"]))
         if len(self.successes) % self.check_every:
@@ -118,8 +118,9 @@ def _check_input_teacher(algo: str, init: str | None, net_cfg: NetConfig | None)
 def run_curriculum(env_factory: Any, init: str | None, algo: str, base_cfg: A3CConfig,
                    cfg: CurriculumConfig | None = None, *, out_dir: str | os.PathLike[str],
                    criterion: Any = None, net_cfg: NetConfig | None = None,
-                   callbacks: Sequence[Callback] = (), mp_context: str | None = None
-                   ) -> CurriculumResult:
+                   callbacks: Sequence[Callback] = (), mp_context: str | None = None,
+                   engine: str = "batched", batch: int | None = None,
+                   device: str | None = None) -> CurriculumResult:
     """Run (or resume) the curriculum.
 
     Args:
@@ -132,11 +133,15 @@ def run_curriculum(env_factory: Any, init: str | None, algo: str, base_cfg: A3CC
         cfg: levels, stage budget, T_max, teacher.
         out_dir: run folder (see the module docstring); an existing ``curriculum.json``
             is resumed.
-        criterion: a :class:`geonav.experiments.convergence.ConvergenceCriterion`
+        criterion: a :class:`geonav.convergence.ConvergenceCriterion`
             (default: its defaults).
+        engine, batch, device: the trainer engine of every stage
+            (:func:`geonav.policy.engine.build_trainer`; a stage the batched engine does
+            not implement, e.g. one with the KL teacher, runs on the async engine).
     """
-    from geonav.experiments.convergence import ConvergenceCriterion
+    from geonav.convergence import ConvergenceCriterion
     from geonav.policy.checkpoint import check_compatible, load_checkpoint
+    from geonav.policy.engine import build_trainer
     from geonav.policy.teacher import PrevViewSpec, TeacherSpec
 
     cfg = cfg if cfg is not None else CurriculumConfig()
@@ -148,7 +153,7 @@ def run_curriculum(env_factory: Any, init: str | None, algo: str, base_cfg: A3CC
         "stages": [], "init": init, "algo": algo, "curriculum": to_dict(cfg),
         "criterion": {"window": criterion.window, "threshold": criterion.threshold,
                       "hold": criterion.hold}, "base": to_dict(base_cfg)}
-    cls = trainer_class(algo)
+    trainer_class(algo)  # validates algo
     if cfg.teacher == "input":
         _check_input_teacher(algo, init, net_cfg)
     prev_ckpt, prev_alt = init, cfg.first_teacher_alt_m
@@ -194,8 +199,9 @@ def run_curriculum(env_factory: Any, init: str | None, algo: str, base_cfg: A3CC
         stage_net = net_cfg
         if resume is None and prev_ckpt is not None:
             stage_net = load_checkpoint(prev_ckpt).net_config
-        trainer = cls(factory, stage_net, replace(base_cfg, episodes=cfg.stage_episodes),
-                      **kwargs)
+        trainer = build_trainer(algo, engine, factory, stage_net,
+                                replace(base_cfg, episodes=cfg.stage_episodes), batch=batch,
+                                device=device, **kwargs)
         if resume is None and prev_ckpt is not None:
             ck = load_checkpoint(prev_ckpt)
             check_compatible(ck.meta, trainer.env, path=ck.path)

@@ -140,3 +140,50 @@ def evaluate(policy: ActorCritic | Actor, env: Any, *, frozen: FrozenEncoder | N
         mean_length=sum(r["length"] for r in records) / n,
         mean_collisions=sum(r["collisions"] for r in records) / n,
         greedy=greedy, episodes=records)
+
+
+def all_starts(env: Any, max_starts: int | None = None, seed: int = 0) -> list[Start]:
+    """Every valid start cell of every task of ``env``, or a seeded sample of
+    ``max_starts`` of them (without replacement) when there are more."""
+    u = env.unwrapped
+    out: list[Start] = [(ti, c) for ti in range(len(u.tasks)) for c in u.start_cells(ti)]
+    if max_starts is not None and 0 < max_starts < len(out):
+        rng = np.random.default_rng(seed)
+        idx = sorted(rng.choice(len(out), size=max_starts, replace=False).tolist())
+        out = [out[i] for i in idx]
+    return out
+
+
+def length_ratio(records: list[dict[str, Any]]) -> float:
+    """Mean episode length over the BFS shortest path (successful episodes; NaN if none)."""
+    r = [rec["length"] / max(rec["shortest_path"], 1) for rec in records if rec["success"]]
+    return float(np.mean(r)) if r else float("nan")
+
+
+EVAL_FIELDS = ("episode", "env_steps", "elapsed_s", "starts", "greedy_sr", "greedy_spl",
+               "greedy_length_ratio", "greedy_collisions", "sampled_sr", "sampled_spl",
+               "sampled_length_ratio", "sampled_collisions")
+"""Columns of a run's ``eval.csv`` (one row per periodic evaluation)."""
+
+
+def evaluate_both(policy: ActorCritic | Actor, env: Any, *,
+                  frozen: FrozenEncoder | None = None, max_starts: int | None = 100,
+                  seed: int = 0, threads: int | None = 1) -> dict[str, Any]:
+    """Greedy and sampled evaluation from every start cell (ALGORITHMS.md (f)).
+
+    Returns:
+        ``{"starts": n, "greedy": EvalResult, "sampled": EvalResult, "row": {...}}`` where
+        ``row`` holds the ``EVAL_FIELDS`` figures (without episode/time columns).
+    """
+    starts = all_starts(env, max_starts, seed)
+    g = evaluate(policy, env, frozen=frozen, starts=starts, greedy=True, seed=seed,
+                 threads=threads)
+    s = evaluate(policy, env, frozen=frozen, starts=starts, greedy=False, seed=seed,
+                 threads=threads)
+    row = {"starts": len(starts)}
+    for name, res in (("greedy", g), ("sampled", s)):
+        row[f"{name}_sr"] = round(res.success_rate, 6)
+        row[f"{name}_spl"] = round(res.spl, 6)
+        row[f"{name}_length_ratio"] = round(length_ratio(res.episodes), 6)
+        row[f"{name}_collisions"] = round(res.mean_collisions, 6)
+    return {"starts": len(starts), "greedy": g, "sampled": s, "row": row}

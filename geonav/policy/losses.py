@@ -20,6 +20,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch.nn import functional as F
 
@@ -37,6 +38,46 @@ class LossTerms:
     """Summed entropy over the segment (already included in ``policy``, times -beta)."""
 
 
+def gae_returns(rewards: np.ndarray, values: np.ndarray, bootstrap: np.ndarray,
+                ends: np.ndarray | None, gamma: float, tau: float,
+                end_values: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Discounted returns and GAE advantages of (T, B) step sequences, float64.
+
+    The one implementation of the recursion: the reference trainers call it with B = 1
+    and no episode end inside the segment (:func:`returns_and_advantages`), the batched
+    engine with B slots whose sequences may contain episode ends (masked GAE).
+
+    Args:
+        rewards: (T, B) r_t.
+        values: (T, B) detached V(s_t).
+        bootstrap: (B,) B after the last step (0 where the last step ended the episode).
+        ends: (T, B) bool, step t ended slot b's episode (nothing is bootstrapped past
+            it: R and the GAE restart from 0 before step t); None: no ends inside.
+        gamma: discount; tau: GAE lambda.
+        end_values: (T, B) the value bootstrapped at an episode end instead of 0 (a
+            time-limit truncation with ``LossConfig.bootstrap_on_truncation``).
+    """
+    T = rewards.shape[0]
+    returns = np.zeros_like(values, dtype=np.float64)
+    advantages = np.zeros_like(values, dtype=np.float64)
+    R = np.asarray(bootstrap, np.float64).copy()
+    next_v = R.copy()
+    gae = np.zeros_like(R)
+    for t in range(T - 1, -1, -1):
+        if ends is not None and ends[t].any():
+            e = ends[t]
+            R[e] = 0.0 if end_values is None else end_values[t][e]
+            next_v[e] = R[e]
+            gae[e] = 0.0
+        R = rewards[t] + gamma * R
+        delta = rewards[t] + gamma * next_v - values[t]
+        gae = gae * gamma * tau + delta
+        returns[t] = R
+        advantages[t] = gae
+        next_v = values[t].copy()
+    return returns, advantages
+
+
 def returns_and_advantages(rewards: Sequence[float] | torch.Tensor, values: torch.Tensor,
                            bootstrap: float, gamma: float, tau: float
                            ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -49,27 +90,39 @@ def returns_and_advantages(rewards: Sequence[float] | torch.Tensor, values: torc
         gamma: discount; tau: GAE lambda.
 
     Returns:
-        (returns, advantages), each float32 (T,), without graph.
+        (returns, advantages), each (T,) in the dtype of ``values``, without graph.
     """
-    rl = torch.as_tensor(rewards, dtype=torch.float64).flatten().tolist()
-    vl = values.detach().to(torch.float64).flatten().tolist()
-    T = len(rl)
-    if len(vl) != T:
-        raise ValueError(f"{T} rewards but {len(vl)} values")
-    returns = [0.0] * T
-    advantages = [0.0] * T
-    R = float(bootstrap)
-    gae = 0.0
-    next_v = float(bootstrap)
-    for t in range(T - 1, -1, -1):
-        R = rl[t] + gamma * R
-        delta = rl[t] + gamma * next_v - vl[t]
-        gae = gae * gamma * tau + delta
-        returns[t] = R
-        advantages[t] = gae
-        next_v = vl[t]
-    return (torch.tensor(returns, dtype=torch.float32),
-            torch.tensor(advantages, dtype=torch.float32))
+    rl = torch.as_tensor(rewards, dtype=torch.float64).detach().cpu().numpy().reshape(-1, 1)
+    vl = values.detach().to(torch.float64).cpu().numpy().reshape(-1, 1)
+    if len(vl) != len(rl):
+        raise ValueError(f"{len(rl)} rewards but {len(vl)} values")
+    returns, advantages = gae_returns(rl, vl, np.array([float(bootstrap)]), None, gamma, tau)
+    return (torch.from_numpy(returns[:, 0]).to(values.dtype),
+            torch.from_numpy(advantages[:, 0]).to(values.dtype))
+
+
+def policy_value_terms(logits: torch.Tensor, values: torch.Tensor, actions: torch.Tensor,
+                       returns: torch.Tensor, advantages: torch.Tensor, cfg: LossConfig,
+                       weights: torch.Tensor | None = None) -> LossTerms:
+    """The per-step terms of L_AC summed (optionally weighted per step).
+
+    Args:
+        logits: (..., A) with graph; values: (...) with graph.
+        actions, returns, advantages: (...) constants.
+        weights: (...) per-step weights (the batched engine's masks / B); None: 1.
+    """
+    log_probs = F.log_softmax(logits, dim=-1)
+    entropy = -(log_probs.exp() * log_probs).sum(-1)                       # (...)
+    log_pi_a = log_probs.gather(-1, actions.unsqueeze(-1)).squeeze(-1)     # (...)
+    value_step = 0.5 * (returns - values).pow(2)
+    policy_step = -log_pi_a * advantages - cfg.beta * entropy
+    if weights is not None:
+        value_step, policy_step, entropy = (value_step * weights, policy_step * weights,
+                                            entropy * weights)
+    value_loss = value_step.sum()
+    policy_loss = policy_step.sum()
+    total = policy_loss + cfg.value_coef * value_loss
+    return LossTerms(total, policy_loss, value_loss, entropy.sum())
 
 
 def actor_critic_loss(logits: torch.Tensor, values: torch.Tensor, actions: Sequence[int] |
@@ -94,10 +147,4 @@ def actor_critic_loss(logits: torch.Tensor, values: torch.Tensor, actions: Seque
     values = values.reshape(-1)
     a = torch.as_tensor(actions, dtype=torch.long).reshape(-1)
     returns, advantages = returns_and_advantages(rewards, values, bootstrap, cfg.gamma, cfg.tau)
-    log_probs = F.log_softmax(logits, dim=-1)
-    entropy = -(log_probs.exp() * log_probs).sum(-1)                       # (T,)
-    log_pi_a = log_probs.gather(1, a.unsqueeze(1)).squeeze(1)              # (T,)
-    value_loss = (0.5 * (returns - values).pow(2)).sum()
-    policy_loss = (-log_pi_a * advantages - cfg.beta * entropy).sum()
-    total = policy_loss + cfg.value_coef * value_loss
-    return LossTerms(total, policy_loss, value_loss, entropy.sum())
+    return policy_value_terms(logits, values, a, returns, advantages, cfg)

@@ -13,7 +13,15 @@ import argparse
 from dataclasses import replace
 from typing import Any
 
+from geonav.cliutil import (
+    TqdmProgress,
+    load_toml,
+    nonneg_int,
+    positive_float,
+    positive_int,
+)
 from geonav.errors import ConfigError
+from geonav.policy.envs import EnvFactory
 
 ALGOS = ("a3c", "savn", "isar")
 
@@ -23,20 +31,50 @@ def add_algo_args(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("SAVN / ISAR")
     g.add_argument("--preset", choices=["savn-published", "savn-aligned"], default=None,
                    help="SAVN preset: k=6, G=4 (published) or k=5, no limit (aligned)")
-    g.add_argument("--inner-lr", type=float, default=None, help="SAVN inner SGD lr (alpha)")
-    g.add_argument("--alpha", type=float, default=None, help="ISAR inner SGD lr of theta")
-    g.add_argument("--n-steps", type=int, default=None, help="ISAR N: steps per segment")
-    g.add_argument("--k-segments", type=int, default=None, help="ISAR K: segments per window")
+    g.add_argument("--inner-lr", type=positive_float, default=None,
+                   help="SAVN inner SGD lr (alpha)")
+    g.add_argument("--alpha", type=positive_float, default=None, help="ISAR inner SGD lr of theta")
+    g.add_argument("--n-steps", type=positive_int, default=None, help="ISAR N: steps per segment")
+    g.add_argument("--k-segments", type=positive_int, default=None,
+                   help="ISAR K: segments per window")
     g.add_argument("--first-order", action="store_true",
                    help="do not differentiate through the inner updates (default: second order)")
     g.add_argument("--gradient-path", choices=["recompute", "per-step"], default=None,
                    help="ISAR: batched recompute of each segment (default) or a graph per step")
 
 
-def _toml(args: argparse.Namespace) -> dict[str, Any]:
-    from geonav.policy.cli import _load_toml
+def add_engine_args(p: argparse.ArgumentParser) -> None:
+    """``--engine``, ``--batch`` and ``--device`` (geonav.policy.engine)."""
+    g = p.add_argument_group("engine")
+    g.add_argument("--engine", choices=["batched", "async"], default="batched",
+                   help="'batched': many episodes in lock-step in one process (default); "
+                   "'async': the per-episode multi-process reference trainer")
+    g.add_argument("--batch", type=positive_int, default=None, metavar="B",
+                   help="batched engine: episodes stepped together (default 16)")
+    g.add_argument("--device", choices=["cpu", "cuda"], default="cpu",
+                   help="batched engine: torch device (cuda is refused without a GPU)")
+    b = p.add_argument_group("budget and logging")
+    b.add_argument("--total-steps", type=positive_int, default=None, metavar="N",
+                   help="env-step budget in total (resumed steps included; per stage for the "
+                   "curriculum); training ends when it or the episode budget runs out")
+    b.add_argument("--tensorboard", default=None, metavar="DIR",
+                   help="also log to TensorBoard event files in DIR under SB3's tag names "
+                   "(rollout/ep_rew_mean, rollout/success_rate, eval/..., train/...) against "
+                   "env steps, so runs overlay with SB3's (needs geonav[tensorboard])")
 
-    return _load_toml(getattr(args, "config", None))
+
+def extra_callbacks(args: argparse.Namespace) -> list[Any]:
+    """The callbacks the common options ask for (--tensorboard)."""
+    if getattr(args, "tensorboard", None) is None:
+        return []
+    from geonav.policy.callbacks import tensorboard_callback
+
+    tb = tensorboard_callback(args.tensorboard, required=True)
+    return [tb] if tb is not None else []
+
+
+def _toml(args: argparse.Namespace) -> dict[str, Any]:
+    return load_toml(getattr(args, "config", None))
 
 
 def base_cfg_from_args(args: argparse.Namespace, algo: str, toml: dict[str, Any]) -> Any:
@@ -48,7 +86,7 @@ def base_cfg_from_args(args: argparse.Namespace, algo: str, toml: dict[str, Any]
     opts = dict(toml.get(algo, {}))
     for key, attr in (("episodes", "episodes"), ("workers", "workers"), ("seed", "seed"),
                       ("lr", "lr"), ("checkpoint_every", "checkpoint_every"),
-                      ("t_max", "t_max")):
+                      ("t_max", "t_max"), ("total_steps", "total_steps")):
         v = getattr(args, attr, None)
         if v is not None:
             opts[key] = v
@@ -88,18 +126,29 @@ def _check_tables(toml: dict[str, Any], allowed: set[str], path: Any) -> None:
         raise ConfigError(f"unknown table(s) {unknown} in {path}; use {sorted(allowed)}")
 
 
-def _summary(result: Any) -> str:
+def run_summary(result: Any) -> str:
+    """The closing line of a training command: this call's work and the run's totals, and
+    the final greedy evaluation when there was one."""
     sr = [r["success"] for r in result.records[-100:]]
-    return (f"trained {result.episodes} episodes ({result.env_steps} steps, "
-            f"{result.steps_per_s:.0f} steps/s); last-100 success rate "
-            f"{(sum(sr) / len(sr)) if sr else float('nan'):.2f}; checkpoint {result.checkpoint}")
+    new = result.episodes - result.start_episode
+    total = f" ({result.episodes} in all)" if result.start_episode else ""
+    text = (f"trained {new} episodes{total}, {result.env_steps} env steps, "
+            f"{result.steps_per_s:.0f} steps/s; last-{min(len(sr), 100)} training success "
+            f"{(sum(sr) / len(sr)) if sr else float('nan'):.2f}")
+    evals = getattr(result, "evals", None)
+    if evals:
+        e = evals[-1]
+        text += (f"; greedy SR {e['greedy_sr']:.2f} / SPL {e['greedy_spl']:.2f} from "
+                 f"{e['starts']} starts (sampled {e['sampled_sr']:.2f})")
+    return text + f"; checkpoint {result.checkpoint}"
+
+
+_summary = run_summary
 
 
 def run_train_algo(args: argparse.Namespace) -> int:
     """``geonav train --algo savn|isar``."""
-    from geonav.policy.cli import EnvFactory, _TqdmProgress
-    from geonav.policy.isar import ISARTrainer
-    from geonav.policy.savn import SAVNTrainer
+    from geonav.policy.engine import build_trainer
 
     toml = _toml(args)
     _check_tables(toml, {"net", args.algo}, args.config)
@@ -109,10 +158,10 @@ def run_train_algo(args: argparse.Namespace) -> int:
     net = net_cfg_from_args(args, toml, factory)
     if net is not None and args.obs_size is None:
         factory = replace(factory, obs_size_px=net.obs_size_px)
-    cls = {"savn": SAVNTrainer, "isar": ISARTrainer}[args.algo]
-    progress = _TqdmProgress(args.no_progress)
-    result = cls(factory, net, cfg, out_dir=args.out, resume=args.resume,
-                 callbacks=[progress.callback]).train()
+    progress = TqdmProgress(args.no_progress)
+    result = build_trainer(args.algo, args.engine, factory, net, cfg, batch=args.batch,
+                           device=args.device, out_dir=args.out, resume=args.resume,
+                           callbacks=[progress.callback, *extra_callbacks(args)]).train()
     print(_summary(result))
     return 0
 
@@ -124,12 +173,12 @@ def _common(p: argparse.ArgumentParser, algo_default: str) -> None:
     p.add_argument("--tasks", required=True, help="task set JSON")
     p.add_argument("--algo", choices=ALGOS, default=algo_default, help="base algorithm")
     p.add_argument("--out", required=True, metavar="RUN_DIR", help="run folder")
-    p.add_argument("--workers", type=int, default=None, help="worker processes (0: one "
+    p.add_argument("--workers", type=nonneg_int, default=None, help="worker processes (0: one "
                    "process, deterministic)")
-    p.add_argument("--seed", type=int, default=None, help="seed")
-    p.add_argument("--lr", type=float, default=None,
+    p.add_argument("--seed", type=nonneg_int, default=None, help="seed")
+    p.add_argument("--lr", type=positive_float, default=None,
                    help="the base algorithm's Adam lr (ISAR: beta)")
-    p.add_argument("--obs-size", type=int, default=None, metavar="PX",
+    p.add_argument("--obs-size", type=positive_int, default=None, metavar="PX",
                    help="observation side in pixels (default: the task set's camera)")
     p.add_argument("--encoder", choices=ENCODERS, default=None, help="image encoder")
     p.add_argument("--encoder-weights", default=None, metavar="PATH",
@@ -141,6 +190,7 @@ def _common(p: argparse.ArgumentParser, algo_default: str) -> None:
                    "algorithm's table, [meta] / [curriculum]; command-line options win")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_algo_args(p)
+    add_engine_args(p)
 
 
 def add_parsers(subparsers: Any) -> None:
@@ -150,16 +200,16 @@ def add_parsers(subparsers: Any) -> None:
         description="Batches of B meta-tasks in cyclic order; each runs E episodes of the "
         "base algorithm from psi; psi <- psi - eta * sum of the task gradients.")
     _common(m, "isar")
-    m.add_argument("--episodes", type=int, default=None, help="episodes over all tasks")
-    m.add_argument("--batch-tasks", type=int, default=None, help="B (default: workers)")
-    m.add_argument("--episodes-per-task", type=int, default=None, help="E (default 1)")
-    m.add_argument("--meta-lr", type=float, default=None, help="eta (default 1e-3)")
+    m.add_argument("--episodes", type=positive_int, default=None, help="episodes over all tasks")
+    m.add_argument("--batch-tasks", type=positive_int, default=None, help="B (default: workers)")
+    m.add_argument("--episodes-per-task", type=positive_int, default=None, help="E (default 1)")
+    m.add_argument("--meta-lr", type=positive_float, default=None, help="eta (default 1e-3)")
     m.add_argument("--meta-optimizer", choices=["sgd", "adam"], default=None,
                    help="meta update rule (default sgd)")
-    m.add_argument("--altitude", type=float, default=None, metavar="M",
+    m.add_argument("--altitude", type=positive_float, default=None, metavar="M",
                    help="fly every task at this altitude (default: the tasks')")
-    m.add_argument("--max-steps", type=int, default=None, help="episode cap override")
-    m.add_argument("--checkpoint-every", type=int, default=None, help="episodes")
+    m.add_argument("--max-steps", type=positive_int, default=None, help="episode cap override")
+    m.add_argument("--checkpoint-every", type=positive_int, default=None, help="episodes")
     m.add_argument("--resume", default=None, metavar="CKPT", help="continue from a checkpoint")
     m.set_defaults(handler=run_meta_train, func=run_meta_train)
 
@@ -171,25 +221,25 @@ def add_parsers(subparsers: Any) -> None:
     _common(c, "isar")
     c.add_argument("--init", default=None, metavar="CKPT", help="starting policy (weights)")
     c.add_argument("--levels", default=None, help="altitudes in metres, e.g. 75,45,15")
-    c.add_argument("--stage-episodes", type=int, default=None, help="budget per stage")
-    c.add_argument("--max-steps", type=int, default=None, help="T_max (default 120)")
+    c.add_argument("--stage-episodes", type=positive_int, default=None, help="budget per stage")
+    c.add_argument("--max-steps", type=positive_int, default=None, help="T_max (default 120)")
     c.add_argument("--teacher", choices=["kl", "none", "input"], default=None,
                    help="KL prior to the previous stage (default), none, or 'input': the "
                    "previous-altitude view in the network's extra input slot (needs an "
                    "--init checkpoint trained with --prev-view-input)")
     c.add_argument("--teacher-levels", default=None,
                    help="stages that get the teacher (default: all after the first)")
-    c.add_argument("--window", type=int, default=None, help="convergence W (default 500)")
-    c.add_argument("--threshold", type=float, default=None, help="convergence SR (0.95)")
-    c.add_argument("--hold", type=float, default=None, help="SR kept for W episodes (0.90)")
+    c.add_argument("--window", type=positive_int, default=None, help="convergence W (default 500)")
+    c.add_argument("--threshold", type=positive_float, default=None, help="convergence SR (0.95)")
+    c.add_argument("--hold", type=positive_float, default=None,
+                   help="SR kept for W episodes (0.90)")
     c.set_defaults(handler=run_curriculum_cmd, func=run_curriculum_cmd)
 
 
 def run_meta_train(args: argparse.Namespace) -> int:
     """Handler of ``geonav meta-train``."""
-    from geonav.policy.cli import EnvFactory, _TqdmProgress
     from geonav.policy.config import from_dict
-    from geonav.policy.meta import MetaTrainer
+    from geonav.policy.engine import build_meta_trainer
     from geonav.policy.meta_config import MetaConfig
 
     toml = _toml(args)
@@ -212,9 +262,10 @@ def run_meta_train(args: argparse.Namespace) -> int:
     net = net_cfg_from_args(args, toml, factory)
     if net is not None and args.obs_size is None:
         factory = replace(factory, obs_size_px=net.obs_size_px)
-    progress = _TqdmProgress(args.no_progress)
-    result = MetaTrainer(factory, net, args.algo, base, meta, out_dir=args.out,
-                         resume=args.resume, callbacks=[progress.callback]).train()
+    progress = TqdmProgress(args.no_progress)
+    result = build_meta_trainer(args.algo, args.engine, factory, net, base, meta,
+                                device=args.device, out_dir=args.out, resume=args.resume,
+                                callbacks=[progress.callback, *extra_callbacks(args)]).train()
     print(_summary(result))
     return 0
 
@@ -231,8 +282,7 @@ def _floats(text: str | None) -> tuple[float, ...] | None:
 
 def run_curriculum_cmd(args: argparse.Namespace) -> int:
     """Handler of ``geonav curriculum``."""
-    from geonav.experiments.convergence import ConvergenceCriterion
-    from geonav.policy.cli import EnvFactory, _TqdmProgress
+    from geonav.convergence import ConvergenceCriterion
     from geonav.policy.config import from_dict
     from geonav.policy.curriculum import run_curriculum
     from geonav.policy.meta_config import CurriculumConfig
@@ -267,9 +317,11 @@ def run_curriculum_cmd(args: argparse.Namespace) -> int:
                                                        .meta["obs_size_px"]))
         elif net is not None:
             factory = replace(factory, obs_size_px=net.obs_size_px)
-    progress = _TqdmProgress(args.no_progress)
+    progress = TqdmProgress(args.no_progress)
     res = run_curriculum(factory, args.init, args.algo, base, cur, out_dir=args.out,
-                         criterion=criterion, net_cfg=net, callbacks=[progress.callback])
+                         criterion=criterion, net_cfg=net,
+                         callbacks=[progress.callback, *extra_callbacks(args)],
+                         engine=args.engine, batch=args.batch, device=args.device)
     for s in res.stages:
         print(f"stage {s.alt_m:g} m: {s.episodes} episodes, converged at "
               f"{s.converged_at if s.converged_at is not None else 'never (budget)'}")

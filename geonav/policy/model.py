@@ -3,13 +3,16 @@
 Current view and target view -> encoder -> linear to ``embed_dim`` each (ReLU);
 previous action probabilities -> linear to ``action_embed_dim`` (ReLU);
 concatenate -> fully connected (ReLU) -> LSTMCell -> actor (``n_actions``) and
-critic (1) heads. With ``NetConfig.prev_view_input`` an extra slot E(o^prev)
+critic (1) heads (the initialisation and input scaling are ``NetConfig.init``,
+``input_norm`` and ``actor_init_std``; why, in docs/learning.md). With
+``NetConfig.prev_view_input`` an extra slot E(o^prev)
 (ALGORITHMS.md (e), option B) adds the encoder features of the view at the same cell
 at the previous curriculum altitude, linear to ``embed_dim`` (ReLU), concatenated after
 the target embedding; ``forward``'s ``prev`` argument feeds it, and None zero-fills the
 slot's *features* (so the embedding is ReLU(bias)). SAVN's initialisation
 (allenai/savn ``models/model_io.py``, ``utils/net_util.py``): Xavier-uniform weights
-and zero biases, actor weights column-normalised to std 0.01, critic to 1.0.
+and zero biases, actor weights column-normalised to std 0.01, critic to 1.0, is kept as
+``NetConfig(init='savn')``; the default is orthogonal with ReLU gain and an actor of 1.0.
 
 The recurrent state is a tuple ``(h, c, p)``: LSTM hidden and cell ``(B, lstm_size)``
 and the previous action probabilities ``(B, n_actions)`` (zeros at episode start).
@@ -71,8 +74,8 @@ class ActorCritic(nn.Module):
     def __init__(self, cfg: NetConfig) -> None:
         super().__init__()
         self.cfg = cfg
-        self.encoder: SmallCNN | None = SmallCNN(cfg.obs_size_px) if cfg.encoder == "cnn" \
-            else None
+        self.encoder: SmallCNN | None = SmallCNN(cfg.obs_size_px, cfg.input_norm) \
+            if cfg.encoder == "cnn" else None
         fdim = feature_dim(cfg)
         self.obs_embed = nn.Linear(fdim, cfg.embed_dim)
         self.target_embed = nn.Linear(fdim, cfg.embed_dim)
@@ -88,12 +91,23 @@ class ActorCritic(nn.Module):
         self.reset_parameters()
 
     def reset_parameters(self) -> None:
-        """SAVN's initialisation (draws from torch's global RNG)."""
-        self.apply(_xavier_)
+        """``NetConfig.init`` (draws from torch's global RNG): 'orthogonal' or SAVN's."""
+        if self.cfg.init == "savn":
+            self.apply(_xavier_)
+        else:  # orthogonal, ReLU gain: activations keep their scale through the trunk
+            for m in self.modules():
+                if isinstance(m, (nn.Linear, nn.Conv2d)):
+                    nn.init.orthogonal_(m.weight, math.sqrt(2.0))
+                    nn.init.zeros_(m.bias)  # type: ignore[arg-type]
+            nn.init.orthogonal_(self.lstm.weight_ih)
+            nn.init.orthogonal_(self.lstm.weight_hh)
         with torch.no_grad():
             self.lstm.bias_ih.zero_()
             self.lstm.bias_hh.zero_()
-        norm_col_init(self.actor.weight, 0.01)
+        actor_std = self.cfg.actor_init_std
+        if actor_std is None:
+            actor_std = 0.01 if self.cfg.init == "savn" else 1.0
+        norm_col_init(self.actor.weight, actor_std)
         norm_col_init(self.critic.weight, 1.0)
         with torch.no_grad():
             self.actor.bias.zero_()
@@ -139,6 +153,7 @@ class ActorCritic(nn.Module):
             logits (T, B, n_actions), values (T, B) and the state after step T, whose
             ``p`` is the softmax of the last logits.
         """
+        # Batched mirror: geonav/policy/batched/core.py; change both (test_batched_core.py).
         T, B = obs.shape[0], obs.shape[1]
         obs_f = self.features(obs.reshape(T * B, *obs.shape[2:]))
         tgt_f = self.features(target)

@@ -7,28 +7,29 @@ import importlib
 import warnings
 from pathlib import Path
 
-from geonav.errors import ConfigError
-from geonav.geo import LonLat
+from geonav.cliutil import (
+    bbox_arg,
+    finite_float,
+    lonlat_arg,
+    nonneg_int,
+    positive_float,
+    positive_int,
+)
+from geonav.errors import GeonavWarning
+from geonav.tiles import DEFAULT_MEMORY_BUDGET_MB, DSM_UNIT_CHOICES
 
 
-def parse_lonlat(text: str) -> LonLat:
-    """'lon,lat[,alt]' -> LonLat."""
-    try:
-        parts = [float(v) for v in text.split(",")]
-    except ValueError as err:
-        raise ConfigError(f"expected lon,lat[,alt] in degrees, got {text!r}") from err
-    if len(parts) not in (2, 3):
-        raise ConfigError(f"expected lon,lat[,alt] in degrees, got {text!r}")
-    return LonLat(*parts)
+def _bands(text: str) -> tuple[int, ...]:
+    """argparse type of --bands: '4,3,2' or '1' (1-based, like GDAL)."""
+    parts = [p.strip() for p in text.split(",")]
+    if len(parts) not in (1, 3):
+        raise argparse.ArgumentTypeError(f"{text!r}: give three bands R,G,B like 4,3,2, or one")
+    return tuple(positive_int(p) for p in parts)
 
 
-def parse_bbox(text: str) -> tuple[float, float, float, float]:
-    """'west,south,east,north' in degrees."""
-    try:
-        w, s, e, n = (float(v) for v in text.split(","))
-    except ValueError as err:
-        raise ConfigError(f"expected west,south,east,north in degrees, got {text!r}") from err
-    return w, s, e, n
+#: argparse types shared by the tiles subcommands (kept under their old names).
+parse_lonlat = lonlat_arg
+parse_bbox = bbox_arg
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -42,16 +43,26 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    "tiles, .mbtiles files (mosaicked in order, first wins)")
     p.add_argument("--tms", action="store_true",
                    help="tile folders count rows from the south (TMS) instead of XYZ")
-    p.add_argument("--zoom", type=int,
+    p.add_argument("--zoom", type=nonneg_int,
                    help="zoom level to read from tile folders/MBTiles (default: the highest)")
     p.add_argument("--name", required=True, help="scene name, e.g. A")
     p.add_argument("--out", required=True, help="scene package folder to write")
     p.add_argument("--dsm", help="surface model raster of absolute heights (any CRS)")
     p.add_argument("--dem", help="ground height raster (default: --ground-alt or estimated)")
-    p.add_argument("--ground-alt", type=float, help="ground height AMSL in metres")
-    p.add_argument("--gsd", type=float, help="scene GSD in m/px (default: the sources' finest)")
+    p.add_argument("--ground-alt", type=finite_float, help="ground height AMSL in metres")
+    p.add_argument("--gsd", type=positive_float,
+                   help="scene GSD in m/px (default: the sources' finest)")
     p.add_argument("--bbox", type=parse_bbox, help="cut to west,south,east,north (degrees)")
     p.add_argument("--origin", type=parse_lonlat, help="scene origin lon,lat[,alt]")
+    p.add_argument("--bands", type=_bands,
+                   help="1-based bands of GeoTIFF sources to use as R,G,B (e.g. 4,3,2 for "
+                   "Landsat 8) or one grey band; default: the file's colour interpretation")
+    p.add_argument("--dsm-units", choices=DSM_UNIT_CHOICES,
+                   help="unit of the --dsm/--dem values (default: the file's band unit or "
+                   "vertical CRS, else its horizontal CRS unit, with a warning)")
+    p.add_argument("--memory-budget", type=positive_float, metavar="MIB",
+                   help=f"refuse reads and scene grids above this many MiB (default "
+                   f"{DEFAULT_MEMORY_BUDGET_MB})")
     p.add_argument("--attribution", default="", help="licence/attribution text you hold")
     p.add_argument("--compress", default="JPEG", choices=["JPEG", "DEFLATE"])
     p.add_argument("--force", action="store_true", help="replace an existing package")
@@ -61,9 +72,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--kind", default="residential", choices=["residential", "campus", "wild"])
     p.add_argument("--name", help="scene name (default: the kind)")
     p.add_argument("--out", required=True, help="scene package folder to write")
-    p.add_argument("--size", type=float, default=1200.0, help="side in metres (default 1200)")
-    p.add_argument("--gsd", type=float, default=0.25, help="m/px (default 0.25)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--size", type=positive_float, default=1200.0,
+                   help="side in metres (default 1200)")
+    p.add_argument("--gsd", type=positive_float, default=0.25, help="m/px (default 0.25)")
+    p.add_argument("--seed", type=nonneg_int, default=0)
     p.add_argument("--origin", type=parse_lonlat, help="scene centre lon,lat[,alt]")
     p.add_argument("--keep-sources", help="folder to keep the generated GeoTIFFs in")
     p.add_argument("--force", action="store_true", help="replace an existing package")
@@ -86,22 +98,24 @@ def _report(scene, out: Path) -> None:
 
 
 def run_ingest(args: argparse.Namespace) -> int:
-    from geonav.cli import progress_bar
+    from geonav.cliutil import progress_bar
     from geonav.tiles.ingest import ingest
 
     with warnings.catch_warnings():
-        warnings.simplefilter("always")
+        warnings.simplefilter("always", GeonavWarning)  # each one, once, as one line
         scene = ingest(args.sources, name=args.name, out=args.out, dsm=args.dsm, dem=args.dem,
                        ground_alt_m=args.ground_alt, gsd_m=args.gsd, origin=args.origin,
                        bbox_lonlat=args.bbox, attribution=args.attribution,
                        overwrite=args.force, compress=args.compress,
-                       progress=progress_bar("ingest"), tms=args.tms, zoom=args.zoom)
+                       progress=progress_bar("ingest"), tms=args.tms, zoom=args.zoom,
+                       rgb_bands=args.bands, dsm_units=args.dsm_units,
+                       memory_budget_mb=args.memory_budget)
     _report(scene, Path(args.out))
     return 0
 
 
 def run_synth(args: argparse.Namespace) -> int:
-    from geonav.cli import progress_bar
+    from geonav.cliutil import progress_bar
     from geonav.tiles.ingest import ingest_synthetic
 
     scene = ingest_synthetic(args.kind, out=args.out, name=args.name, size_m=args.size,

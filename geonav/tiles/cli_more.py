@@ -11,6 +11,7 @@ from geonav.errors import ConfigError
 
 
 def add_parsers(tsub: argparse._SubParsersAction) -> None:
+    from geonav.cliutil import nonneg_int, positive_float, positive_floats, positive_int
     from geonav.tiles.cli import parse_bbox
 
     p = tsub.add_parser(
@@ -23,28 +24,33 @@ def add_parsers(tsub: argparse._SubParsersAction) -> None:
                    ".png'; quote it")
     p.add_argument("--bbox", type=parse_bbox, required=True,
                    help="west,south,east,north in degrees")
-    p.add_argument("--zoom", type=int, required=True, help="zoom level (0..24)")
+    p.add_argument("--zoom", type=nonneg_int, required=True, help="zoom level (0..24)")
     p.add_argument("--out", required=True, help="cache folder (tiles land in OUT/z/x/y.ext)")
     p.add_argument("--attribution", required=True,
                    help="provider and licence/terms under which you may use these tiles; "
                    "stored with the tiles and in the scene manifest")
-    p.add_argument("--max-tiles", type=int, default=2000,
+    p.add_argument("--max-tiles", type=positive_int, default=2000,
                    help="refuse when the bbox needs more tiles (default 2000)")
-    p.add_argument("--workers", type=int, default=4, help="concurrent requests (default 4)")
+    p.add_argument("--workers", type=positive_int, default=4,
+                   help="concurrent requests (default 4)")
     p.add_argument("--subdomains", default="abc",
                    help="values for {s}: letters ('abc') or comma-separated names")
     p.add_argument("--user-agent", help="User-Agent header (default: geonav/<version> ...)")
-    p.add_argument("--timeout", type=float, default=20.0, help="seconds per request")
-    p.add_argument("--retries", type=int, default=4,
+    p.add_argument("--timeout", type=positive_float, default=20.0,
+                   help="seconds per request: connect, each read and the whole body")
+    p.add_argument("--retries", type=nonneg_int, default=4,
                    help="retries per tile on 429/5xx/timeouts (default 4)")
     p.add_argument("--retry-missing", action="store_true",
                    help="ask again for tiles an earlier run found missing (404)")
+    p.add_argument("--verify", action="store_true",
+                   help="decode the tiles already cached for the bbox; bad ones are deleted "
+                   "and fetched again")
     p.set_defaults(handler=run_fetch)
 
     p = tsub.add_parser("info", help="summarise a scene package")
     p.add_argument("scene", help="scene package folder")
-    p.add_argument("--obs-size", type=int, default=84, help="camera image size in px (84)")
-    p.add_argument("--fov", type=float, default=90.0, help="camera field of view, degrees")
+    p.add_argument("--obs-size", type=positive_int, default=84, help="camera image size in px (84)")
+    p.add_argument("--fov", type=positive_float, default=90.0, help="camera field of view, degrees")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.set_defaults(handler=run_info)
 
@@ -52,9 +58,9 @@ def add_parsers(tsub: argparse._SubParsersAction) -> None:
     p.add_argument("scene", help="scene package folder")
     p.add_argument("--tasks", help="task set JSON to draw (regions and targets)")
     p.add_argument("-o", "--out", required=True, help="PNG to write")
-    p.add_argument("--alts", default="300,75,45,15",
+    p.add_argument("--alts", type=positive_floats, default=(300.0, 75.0, 45.0, 15.0),
                    help="altitudes whose footprints are drawn (default 300,75,45,15)")
-    p.add_argument("--max-px", type=int, default=1600, help="image pixels across (1600)")
+    p.add_argument("--max-px", type=positive_int, default=1600, help="image pixels across (1600)")
     p.set_defaults(handler=run_preview)
 
 
@@ -67,7 +73,7 @@ def _subdomains(text: str) -> tuple[str, ...]:
 
 
 def run_fetch(args: argparse.Namespace) -> int:
-    from geonav.cli import progress_bar
+    from geonav.cliutil import progress_bar
     from geonav.tiles.fetch import USER_AGENT, FetchIncomplete, fetch_tiles
 
     try:
@@ -76,7 +82,7 @@ def run_fetch(args: argparse.Namespace) -> int:
             max_tiles=args.max_tiles, workers=args.workers,
             subdomains=_subdomains(args.subdomains), user_agent=args.user_agent or USER_AGENT,
             timeout_s=args.timeout, retries=args.retries, retry_not_found=args.retry_missing,
-            progress=progress_bar("fetch"))
+            verify=args.verify, progress=progress_bar("fetch"))
     except FetchIncomplete as err:
         r = err.result
         print(f"fetched {r.downloaded}, cached {r.cached}, missing (404) {r.not_found}, "
@@ -84,6 +90,9 @@ def run_fetch(args: argparse.Namespace) -> int:
         for line in r.failures:
             print(f"  {line}")
         raise
+    if args.verify:
+        print(f"verified {result.verified} cached tiles: {result.invalid_removed} were bad, "
+              "deleted and fetched again")
     print(f"{result.total} tiles at zoom {result.zoom}: {result.downloaded} downloaded "
           f"({result.bytes / 1e6:.1f} MB, {result.retries} retries), {result.cached} already "
           f"cached, {result.not_found} missing on the server (404, masked) -> {result.folder}")
@@ -112,17 +121,25 @@ def run_preview(args: argparse.Namespace) -> int:
     from geonav.tasks import TaskSet
     from geonav.viz import draw_scene
 
-    try:
-        alts = tuple(float(a) for a in args.alts.split(",") if a.strip())
-    except ValueError as err:
-        raise ConfigError(f"--alts {args.alts!r}: give altitudes in metres like 300,75") from err
+    alts = tuple(args.alts)
     scene = Scene.open(args.scene)
     tasks = None
+    title = None
+    chance = ""
     if args.tasks:
+        from geonav.difficulty import describe, taskset_difficulty
+
         tasks = TaskSet.load(args.tasks)
         tasks.check_scene(scene)
-    out = draw_scene(scene, args.out, tasks=tasks, footprints_at=alts, max_px=args.max_px)
+        diff = tasks.meta.get("difficulty")
+        if not isinstance(diff, dict):
+            diff = taskset_difficulty(tasks, scene)
+        chance = f"; chance: {describe(diff)}"
+        title = (f"{scene.name}: {len(tasks)} tasks; random walk SR "
+                 f"{diff['random_walk_sr']:.2f}, best state-blind {diff['blind_sr']:.2f}")
+    out = draw_scene(scene, args.out, tasks=tasks, footprints_at=alts, max_px=args.max_px,
+                     title=title)
     n = len(tasks) if tasks is not None else 0
     print(f"wrote {Path(out)} (scene {scene.name}, {n} tasks, footprints at "
-          f"{', '.join(f'{a:g}' for a in alts)} m)")
+          f"{', '.join(f'{a:g}' for a in alts)} m{chance})")
     return 0

@@ -10,7 +10,11 @@ machine analysis of their tiles). The download is polite by construction:
   401/403 stop the whole download at once;
 * a ``max_tiles`` guard checked before the first request;
 * 404/204 (no tile there) is recorded, masked at ingestion and not asked
-  again on a rerun;
+  again on a rerun; a run that ends with no tile at all is an error;
+* a body is cached only when it is as long as its ``Content-Length`` and decodes
+  as an image (a truncated, junk or cut-off chunked body is retried, never
+  cached); every read has a deadline, so a server trickling bytes cannot hold a
+  tile past ``timeout_s``; ``verify=True`` re-checks (and drops) cached tiles;
 * every tile is written to a temporary file and renamed into place, so an
   interrupted run leaves no partial tile and a rerun fetches only what is
   missing.
@@ -25,6 +29,7 @@ scene manifest.
 
 from __future__ import annotations
 
+import http.client
 import json
 import logging
 import os
@@ -49,7 +54,9 @@ from geonav.tiles.xyz import (
     SIDECAR,
     TILE_EXTS,
     check_tile,
+    decode_tile,
     flip_y,
+    scan_folder,
     sniff_format,
     tile_range_for_bbox,
 )
@@ -92,6 +99,8 @@ class FetchResult:
     failed: int = 0
     retries: int = 0
     bytes: int = 0
+    verified: int = 0
+    invalid_removed: int = 0
     failures: list[str] = field(default_factory=list)
 
     @property
@@ -203,26 +212,84 @@ class _Stop(Exception):
     pass
 
 
+class BadBody(ValueError):
+    """A 200 answer whose body cannot be a complete tile (short, junk, cut off)."""
+
+
 def _get(url: str, *, user_agent: str, timeout_s: float) -> tuple[int, bytes, dict[str, str]]:
-    """One GET: (status, body, headers). Raises urllib/socket errors on failure."""
+    """One GET: (status, body, headers). Raises urllib/socket errors on failure.
+
+    ``timeout_s`` bounds the connect, every read (socket timeout) and the whole
+    body (deadline checked after each read, which returns as soon as any bytes
+    arrive, so a server trickling a byte a second is cut off in time). A body
+    shorter than its ``Content-Length``, or a chunked body cut short, raises
+    :class:`BadBody`.
+    """
     request = urllib.request.Request(url, headers={"User-Agent": user_agent,
                                                    "Accept": "image/*"})
     deadline = time.monotonic() + timeout_s
     try:
         with urllib.request.urlopen(request, timeout=timeout_s) as response:  # noqa: S310
             chunks, size = [], 0
-            # The socket timeout bounds each read; the deadline bounds a trickling body.
-            while chunk := response.read(1 << 16):
-                chunks.append(chunk)
-                size += len(chunk)
-                if size > _MAX_TILE_BYTES:
-                    raise ValueError(f"tile larger than {_MAX_TILE_BYTES >> 20} MiB")
-                if time.monotonic() > deadline:
-                    raise TimeoutError(f"body not complete after {timeout_s:g} s")
-            return response.status, b"".join(chunks), dict(response.headers)
+            try:
+                while chunk := response.read1(1 << 16):
+                    chunks.append(chunk)
+                    size += len(chunk)
+                    if size > _MAX_TILE_BYTES:
+                        raise BadBody(f"tile larger than {_MAX_TILE_BYTES >> 20} MiB")
+                    if time.monotonic() > deadline:
+                        raise TimeoutError(f"body not complete after {timeout_s:g} s")
+            except http.client.IncompleteRead as err:
+                raise BadBody(f"body cut short after {size + len(err.partial)} bytes") from err
+            headers = dict(response.headers)
+            declared = headers.get("Content-Length", "").strip()
+            if declared.isdigit() and int(declared) != size:
+                raise BadBody(f"body is {size} bytes, Content-Length said {declared}")
+            return response.status, b"".join(chunks), headers
     except urllib.error.HTTPError as err:
         with err:
             return err.code, b"", dict(err.headers or {})
+    except http.client.HTTPException as err:  # bad status line, chunk framing, ...
+        raise BadBody(f"broken HTTP answer ({type(err).__name__}: {err})") from err
+
+
+def check_tile_bytes(data: bytes) -> str:
+    """The image format of a complete, decodable tile; :class:`BadBody` otherwise."""
+    fmt = sniff_format(data)
+    if fmt is None:
+        raise BadBody("answer is not a PNG/JPEG/WebP image")
+    try:
+        decode_tile(data)
+    except ValueError as err:
+        raise BadBody(str(err)) from err
+    return fmt
+
+
+def verify_cache(cache: str | os.PathLike[str], zoom: int | None = None,
+                 tiles: Sequence[tuple[int, int, int]] | None = None) -> tuple[int, list[str]]:
+    """Decode every cached tile (of ``zoom``, or of ``tiles``) and delete the bad ones.
+
+    Returns:
+        (tiles checked, names of the tiles removed); a rerun of the fetch gets those again.
+    """
+    cache = Path(cache)
+    if not cache.is_dir():
+        raise TileError(f"{cache} is not a tile cache folder")
+    if tiles is not None:
+        paths = [p for z, x, y in tiles if (p := cached_tile(cache, z, x, y)) is not None]
+    else:
+        levels = scan_folder(cache)
+        paths = [p for z, level in levels.items() if zoom is None or z == zoom
+                 for p in level.values()]
+    removed = []
+    for path in paths:
+        try:
+            check_tile_bytes(path.read_bytes())
+        except (BadBody, OSError) as err:
+            log.info("removing bad cached tile %s: %s", path, err)
+            path.unlink(missing_ok=True)
+            removed.append(f"{path.relative_to(cache)} ({err})")
+    return len(paths), removed
 
 
 def fetch_tiles(
@@ -241,6 +308,7 @@ def fetch_tiles(
     backoff_s: float = 1.0,
     max_backoff_s: float = 60.0,
     retry_not_found: bool = False,
+    verify: bool = False,
     progress: Progress | None = None,
 ) -> FetchResult:
     """Download the tiles of a lon/lat bbox at one zoom into ``cache`` (XYZ layout).
@@ -260,6 +328,7 @@ def fetch_tiles(
         backoff_s: first backoff; doubles per attempt, capped by ``max_backoff_s``.
         max_backoff_s: longest wait, also for a server's ``Retry-After``.
         retry_not_found: ask again for tiles an earlier run found missing (404).
+        verify: decode the cached tiles of the bbox first and fetch the bad ones again.
         progress: callback ("fetch", fraction).
 
     Returns:
@@ -269,6 +338,7 @@ def fetch_tiles(
         TileError: bad template/bbox/zoom, no attribution, too many tiles, or the
             server refused access (401/403).
         FetchIncomplete: tiles still failing after their retries (rerun to resume).
+        TileError: nothing useful: not one tile of the bbox is cached or downloaded.
     """
     check_template(template)
     if not attribution or not attribution.strip():
@@ -276,6 +346,12 @@ def fetch_tiles(
                         "terms under which you may use these tiles offline")
     if not 1 <= workers <= 16:
         raise TileError(f"workers must be within 1..16, got {workers}")
+    if not (isinstance(timeout_s, (int, float)) and 0 < timeout_s < float("inf")):
+        raise TileError(f"timeout must be a positive number of seconds, got {timeout_s!r}")
+    if not (isinstance(retries, int) and retries >= 0):
+        raise TileError(f"retries must be an integer >= 0, got {retries!r}")
+    if not (isinstance(max_tiles, int) and max_tiles >= 1):
+        raise TileError(f"max_tiles must be an integer >= 1, got {max_tiles!r}")
     tiles = tiles_in_bbox(bbox_lonlat, zoom)
     if len(tiles) > max_tiles:
         raise TileError(f"bbox {tuple(bbox_lonlat)} at zoom {zoom} needs {len(tiles)} tiles, "
@@ -290,6 +366,12 @@ def fetch_tiles(
     known_missing = set() if retry_not_found else {
         tuple(t) for t in sidecar.get("not_found", {}).get(str(zoom), [])}
     result = FetchResult(str(cache), zoom, total=len(tiles))
+    if verify:
+        result.verified, bad = verify_cache(cache, tiles=tiles)
+        result.invalid_removed = len(bad)
+        if bad:
+            log.warning("removed %d bad cached tiles (e.g. %s); fetching them again",
+                        len(bad), bad[0])
     todo = []
     for z, x, y in tiles:
         if cached_tile(cache, z, x, y) is not None:
@@ -318,6 +400,8 @@ def fetch_tiles(
                 status, body, headers = _get(url, user_agent=user_agent, timeout_s=timeout_s)
             except TimeoutError as err:
                 detail = f"timeout ({err or timeout_s})"
+            except BadBody as err:
+                detail = f"bad body ({err})"
             except urllib.error.URLError as err:
                 detail = f"connection error ({err.reason})"
             except (OSError, ValueError) as err:  # reset connections, oversized bodies
@@ -335,13 +419,14 @@ def fetch_tiles(
                     if retry_after.strip().isdigit():
                         wait = min(max_backoff_s, float(retry_after))
                 elif status == 200:
-                    fmt = sniff_format(body)
-                    if fmt is None:
-                        outcome, detail = "failed", "answer is not a PNG/JPEG/WebP image"
+                    try:
+                        fmt = check_tile_bytes(body)
+                    except BadBody as err:  # junk or a truncated image: ask again
+                        detail = f"bad body ({err})"
+                    else:
+                        _write_atomic(tile_path(cache, z, x, y, fmt), body)
+                        outcome, size = "ok", len(body)
                         break
-                    _write_atomic(tile_path(cache, z, x, y, fmt), body)
-                    outcome, size = "ok", len(body)
-                    break
                 else:
                     outcome, detail = "failed", f"HTTP {status}"
                     break
@@ -393,6 +478,12 @@ def fetch_tiles(
             f"{result.failed} of {len(tiles)} tiles failed after {retries} retries "
             f"(e.g. {result.failures[0]}); {result.cached + result.downloaded} are cached in "
             f"{cache}; rerun the same command to resume", result)
+    if result.cached + result.downloaded == 0:
+        raise TileError(
+            f"nothing fetched: all {len(tiles)} tiles of bbox {tuple(bbox_lonlat)} at zoom "
+            f"{zoom} are missing on the server (404/204) at {redact(template)}; check the "
+            "URL template, the zoom and the bbox (lon first)"
+            + ("" if retry_not_found else ", or pass --retry-missing"))
     return result
 
 

@@ -22,16 +22,28 @@ import math
 import os
 import warnings
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from affine import Affine
 
-from geonav.errors import GeonavWarning, IngestError, MissingCRS, NoOverlap
-from geonav.geo import LonLat, parse_crs, scene_crs
-from geonav.scene import Scene, sha256_file
+from geonav.errors import GeonavWarning, IngestError, NoOverlap
+from geonav.geo import LonLat, scene_crs
+from geonav.scene import Scene, clean_stale_temps, temp_dir
+from geonav.tiles.raster import (
+    RasterSource,
+    check_budget,
+    native_gsd_m,
+    open_raster,
+    source_bounds_lonlat,
+)
+from geonav.tiles.sources import open_source
+
+__all__ = ["RasterSource", "SceneGrid", "ingest", "ingest_synthetic", "native_gsd_m",
+           "open_raster", "open_source", "plan_grid", "reproject_heights", "reproject_rgb",
+           "source_bounds_lonlat"]
 
 log = logging.getLogger(__name__)
 
@@ -43,36 +55,6 @@ MAX_ALT_M = 300.0
 #: Lowest altitude (m); its view sets the finest GSD the imagery should have.
 MIN_ALT_M = 15.0
 META_TASK_SIZE_M = 150.0
-
-
-@dataclass
-class RasterSource:
-    """One georeferenced input raster held in memory.
-
-    Attributes:
-        data: (bands, H, W) array; 3 bands uint8 for imagery, 1 band float for a DSM.
-        crs: rasterio CRS of the source.
-        transform: affine pixel -> source CRS (upper-left corner convention).
-        mask: (H, W) bool validity mask, or None when every pixel is valid.
-        info: provenance recorded in the manifest (file, sha256, zoom, ...).
-    """
-
-    data: np.ndarray
-    crs: Any
-    transform: Affine
-    mask: np.ndarray | None = None
-    info: dict[str, Any] = field(default_factory=dict)
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        return int(self.data.shape[1]), int(self.data.shape[2])
-
-    def bounds(self) -> tuple[float, float, float, float]:
-        h, w = self.shape
-        t = self.transform
-        xs = [t.c, t.c + t.a * w]
-        ys = [t.f, t.f + t.e * h]
-        return min(xs), min(ys), max(xs), max(ys)
 
 
 @dataclass(frozen=True)
@@ -92,108 +74,24 @@ class SceneGrid:
         return RioCRS.from_wkt(scene_crs(self.origin).to_wkt())
 
 
-def open_raster(path: str | os.PathLike[str], *, bands: int | None = None) -> RasterSource:
-    """Read a GeoTIFF (or any GDAL raster) into a :class:`RasterSource`.
-
-    Args:
-        path: the file.
-        bands: 3 for imagery (RGB, alpha used as mask), 1 for a height raster.
-    """
-    import rasterio
-    from rasterio.errors import RasterioError
-
-    path = Path(path)
-    if not path.is_file():
-        raise IngestError(f"{path} does not exist")
-    try:
-        with rasterio.open(path) as src:
-            if src.crs is None:
-                raise MissingCRS(
-                    f"{path} has no CRS; assign one first, e.g. "
-                    f"'gdal_edit.py -a_srs EPSG:xxxx {path.name}'"
-                )
-            if src.transform == Affine.identity() and not src.gcps[0]:
-                raise MissingCRS(f"{path} has no geotransform; it is not georeferenced")
-            if src.transform.b or src.transform.d:
-                log.info("%s is rotated; GDAL will warp it", path)
-            if bands == 3:
-                if src.count < 3:
-                    raise IngestError(f"{path} has {src.count} band(s); imagery needs RGB")
-                data = src.read([1, 2, 3])
-                if data.dtype != np.uint8:
-                    data = _to_uint8(data, path)
-                mask = src.dataset_mask() > 0
-            else:
-                data = src.read([1]).astype(np.float32)
-                valid = src.read_masks(1) > 0
-                data[0][~valid] = np.nan
-                mask = valid
-            info = dict(file=path.name, path=str(path.resolve()), sha256=sha256_file(path),
-                        crs=parse_crs(src.crs.to_wkt()).to_wkt(), size_px=[src.width, src.height])
-            return RasterSource(data, src.crs, src.transform, mask, info)
-    except RasterioError as err:
-        raise IngestError(f"cannot read {path}: {err}") from err
+#: How far (m) the scene origin may lie from the imagery: the local tmerc is exact near
+#: its centre, and an origin far off is almost always a lat/lon swap or a typo.
+MAX_ORIGIN_OFFSET_M = 5000.0
 
 
-def _to_uint8(data: np.ndarray, path: Path) -> np.ndarray:
-    # 16-bit or float imagery: stretch the 0.2-99.8 percentile range to 0-255.
-    lo, hi = np.nanpercentile(data, [0.2, 99.8])
-    warnings.warn(f"{path.name} is {data.dtype}; stretched {lo:.4g}..{hi:.4g} to 8 bit",
-                  GeonavWarning, stacklevel=3)
-    scaled = (data.astype(np.float32) - lo) / max(hi - lo, 1e-9) * 255.0
-    return np.clip(np.nan_to_num(scaled), 0, 255).astype(np.uint8)
+def _unwrap(boxes: list[tuple[float, ...]]) -> tuple[float, float, float, float]:
+    """Union of lon/lat boxes, east unwrapped past 180 when a box crosses the antimeridian."""
+    fixed = [(w, s, e + 360.0 if e < w else e, n) for w, s, e, n in boxes]
+    crossing = any(e > 180.0 for _, _, e, _ in fixed)
+    if crossing:  # put every box on the 0..360 side so they compare
+        fixed = [(w + 360.0 if w < 0 else w, s, e + 360.0 if e < 0 else e, n)
+                 for w, s, e, n in fixed]
+    return (min(b[0] for b in fixed), min(b[1] for b in fixed),
+            max(b[2] for b in fixed), max(b[3] for b in fixed))
 
 
-def open_source(
-    path: str | os.PathLike[str],
-    *,
-    tms: bool = False,
-    zoom: int | None = None,
-    bbox_lonlat: tuple[float, float, float, float] | None = None,
-    progress: Progress | None = None,
-) -> RasterSource:
-    """Open any imagery source by its kind: a folder of XYZ tiles, an MBTiles file,
-    or a GDAL raster (GeoTIFF, COG, ...).
-
-    Args:
-        path: the folder or file.
-        tms: a tile folder's rows are in TMS order (counted from the south).
-        zoom: the zoom level of a tile folder or MBTiles (default: the highest).
-        bbox_lonlat: read only the tiles meeting this bbox (tile sources only).
-        progress: callback (phase, fraction).
-    """
-    path = Path(path)
-    if path.is_dir():
-        from geonav.tiles.xyz import read_xyz
-
-        return read_xyz(path, zoom=zoom, tms=tms, bbox_lonlat=bbox_lonlat, progress=progress)
-    if path.suffix.lower() == ".mbtiles":
-        from geonav.tiles.mbtiles import read_mbtiles
-
-        if tms:
-            log.info("--tms is ignored for %s: MBTiles says its own scheme", path)
-        return read_mbtiles(path, zoom=zoom, bbox_lonlat=bbox_lonlat, progress=progress)
-    return open_raster(path, bands=3)
-
-
-def native_gsd_m(src: RasterSource, origin: LonLat) -> float:
-    """The source's pixel size in ground metres, measured in the scene CRS.
-
-    GDAL's suggested warp resolution handles degrees, feet and Web-Mercator's
-    1/cos(lat) scale in one go.
-    """
-    from rasterio.warp import calculate_default_transform
-
-    h, w = src.shape
-    dst_crs = SceneGrid(origin, 1.0, Affine.identity(), 1, 1).crs
-    transform, _, _ = calculate_default_transform(src.crs, dst_crs, w, h, *src.bounds())
-    return float(math.sqrt(abs(transform.a * transform.e)))
-
-
-def source_bounds_lonlat(src: RasterSource) -> tuple[float, float, float, float]:
-    from rasterio.warp import transform_bounds
-
-    return tuple(transform_bounds(src.crs, "EPSG:4326", *src.bounds(), densify_pts=21))
+def _wrap_lon(lon: float) -> float:
+    return (lon + 180.0) % 360.0 - 180.0
 
 
 def plan_grid(
@@ -203,24 +101,33 @@ def plan_grid(
     origin: LonLat | None = None,
     bbox_lonlat: tuple[float, float, float, float] | None = None,
 ) -> SceneGrid:
-    """Plan the scene grid covering the sources (cut to ``bbox_lonlat`` if given)."""
+    """Plan the scene grid covering the sources (cut to ``bbox_lonlat`` if given).
+
+    Raises:
+        IngestError: a GSD that is not a positive finite number or far finer than the
+            sources, an origin more than :data:`MAX_ORIGIN_OFFSET_M` from the data, or
+            a grid of under 2x2 px.
+        NoOverlap: the bbox misses the data.
+    """
     from rasterio.warp import transform_bounds
 
     if not sources:
         raise IngestError("no source rasters given")
-    lonlat = [source_bounds_lonlat(s) for s in sources]
-    w, s, e, n = (min(b[0] for b in lonlat), min(b[1] for b in lonlat),
-                  max(b[2] for b in lonlat), max(b[3] for b in lonlat))
+    if gsd_m is not None and not (math.isfinite(gsd_m) and gsd_m > 0):
+        raise IngestError(f"gsd must be a positive number of metres, got {gsd_m}")
+    w, s, e, n = _unwrap([source_bounds_lonlat(src) for src in sources])
     if bbox_lonlat is not None:
         bw, bs, be, bn = bbox_lonlat
-        if not (bw < be and bs < bn):
+        if not (bw < be and bs < bn) or not all(map(math.isfinite, bbox_lonlat)):
             raise IngestError(f"bbox {bbox_lonlat} must be west,south,east,north with w<e, s<n")
+        if e > 180.0 and bw < 0:
+            bw, be = bw + 360.0, be + 360.0
         if be <= w or bw >= e or bn <= s or bs >= n:
             raise NoOverlap(f"bbox {bbox_lonlat} misses the data, which covers "
-                            f"lon {w:.6f}..{e:.6f}, lat {s:.6f}..{n:.6f}")
+                            f"lon {_wrap_lon(w):.6f}..{_wrap_lon(e):.6f}, lat {s:.6f}..{n:.6f}")
         w, s, e, n = max(w, bw), max(s, bs), min(e, be), min(n, bn)
     if origin is None:
-        origin = LonLat((w + e) / 2, (s + n) / 2, 0.0)
+        origin = LonLat(_wrap_lon((w + e) / 2), (s + n) / 2, 0.0)
     natives = [native_gsd_m(src, origin) for src in sources]
     finest = min(natives)
     if gsd_m is None:
@@ -228,11 +135,9 @@ def plan_grid(
     elif gsd_m < finest / 2:
         raise IngestError(f"--gsd {gsd_m} m is more than 2x finer than the source's native "
                           f"{finest:.3f} m/px; upsampling adds no detail, use >= {finest / 2:.3f}")
-    if gsd_m <= 0:
-        raise IngestError(f"gsd must be positive, got {gsd_m}")
     probe = SceneGrid(origin, gsd_m, Affine.identity(), 1, 1)
-    xmin, ymin, xmax, ymax = transform_bounds("EPSG:4326", probe.crs, w, s, e, n,
-                                              densify_pts=21)
+    xmin, ymin, xmax, ymax = transform_bounds("EPSG:4326", probe.crs, _wrap_lon(w), s,
+                                              _wrap_lon(e), n, densify_pts=21)
     if bbox_lonlat is None:
         # Shrink to the sources' own footprint in the scene CRS (no empty wedges from
         # the lon/lat bbox of a rotated source).
@@ -240,6 +145,18 @@ def plan_grid(
                  for src in sources]
         xmin, ymin = min(b[0] for b in boxes), min(b[1] for b in boxes)
         xmax, ymax = max(b[2] for b in boxes), max(b[3] for b in boxes)
+    if not all(map(math.isfinite, (xmin, ymin, xmax, ymax))):
+        raise IngestError(f"the data cannot be projected around the origin {origin}; is the "
+                          "origin lon,lat (longitude first) near the data?")
+    off_x = max(xmin - 0.0, 0.0 - xmax, 0.0)
+    off_y = max(ymin - 0.0, 0.0 - ymax, 0.0)
+    offset = math.hypot(off_x, off_y)
+    if offset > MAX_ORIGIN_OFFSET_M:
+        raise IngestError(
+            f"origin {origin.lon_deg:.6f},{origin.lat_deg:.6f} is {offset / 1000:.1f} km from "
+            f"the data (lon {_wrap_lon(w):.5f}..{_wrap_lon(e):.5f}, lat {s:.5f}..{n:.5f}); "
+            f"give an --origin within {MAX_ORIGIN_OFFSET_M / 1000:.0f} km of it, longitude "
+            "first, or leave it out to use the centre")
     x0, y0 = math.ceil(xmin / gsd_m - 1e-6) * gsd_m, math.ceil(ymin / gsd_m - 1e-6) * gsd_m
     x1, y1 = math.floor(xmax / gsd_m + 1e-6) * gsd_m, math.floor(ymax / gsd_m + 1e-6) * gsd_m
     width, height = round((x1 - x0) / gsd_m), round((y1 - y0) / gsd_m)
@@ -293,30 +210,26 @@ def reproject_rgb(sources: Sequence[RasterSource], grid: SceneGrid,
 
 
 def reproject_heights(src: RasterSource, grid: SceneGrid) -> np.ndarray:
-    """A height raster on the grid (NaN where unknown); ``max`` when downsampling."""
+    """A height raster on the grid in metres (NaN where unknown); ``max`` when downsampling.
+
+    The unit factor comes from :func:`geonav.tiles.raster.open_raster` (band unit,
+    vertical CRS or ``--dsm-units``); in-memory sources without one are taken as metres.
+    """
     from rasterio.warp import Resampling, reproject
 
     native = native_gsd_m(src, grid.origin)
     resampling = Resampling.max if grid.gsd_m > native * 1.01 else Resampling.bilinear
     out = np.full((grid.height, grid.width), np.nan, np.float32)
     data = src.data[0].astype(np.float32)
-    factor = _vertical_unit_factor(src)
-    reproject(data * factor, out, src_transform=src.transform, src_crs=src.crs,
+    factor = float(src.info.get("height_unit_factor", 1.0))
+    reproject(data * np.float32(factor), out, src_transform=src.transform, src_crs=src.crs,
               src_nodata=np.nan, dst_transform=grid.transform, dst_crs=grid.crs,
               dst_nodata=np.nan, resampling=resampling, num_threads=2)
     return out
 
 
-def _vertical_unit_factor(src: RasterSource) -> float:
-    # Heights in a feet-based projected CRS are normally in feet too.
-    try:
-        crs = parse_crs(src.crs.to_wkt())
-        if crs.is_projected:
-            factor = crs.axis_info[0].unit_conversion_factor
-            return float(factor or 1.0)
-    except Exception:  # noqa: BLE001 - fall back to metres
-        log.debug("could not read the vertical unit of %s", src.info.get("file"))
-    return 1.0
+#: A DSM more than this far (m) below the ground counts as "below the ground".
+BELOW_GROUND_TOL_M = 1.0
 
 
 def heights_above_ground(dsm_abs: np.ndarray, ground_alt_m: float | None,
@@ -324,20 +237,41 @@ def heights_above_ground(dsm_abs: np.ndarray, ground_alt_m: float | None,
     """Absolute surface heights -> height above ground; also returns the ground used.
 
     The ground is the DEM per pixel, else ``ground_alt_m``, else the 2nd
-    percentile of the valid DSM (flat-ground estimate, logged).
+    percentile of the valid DSM (flat-ground estimate, logged). A DSM mostly below
+    the given ground is refused (wrong unit or datum); a few percent below is
+    warned about and clamped to 0.
     """
     valid = np.isfinite(dsm_abs)
     if not valid.any():
         raise NoOverlap("the DSM has no valid height on the scene grid; does it overlap?")
+    estimated = False
     if dem is not None:
         ground = dem
         ground_ref = float(np.nanmedian(dem))
     else:
         if ground_alt_m is None:
             ground_alt_m = float(np.percentile(dsm_abs[valid], 2))
+            estimated = True
             log.info("ground level estimated from the DSM: %.2f m", ground_alt_m)
+        elif not math.isfinite(ground_alt_m):
+            raise IngestError(f"--ground-alt must be a finite height in metres, got "
+                              f"{ground_alt_m}")
         ground, ground_ref = ground_alt_m, ground_alt_m
-    height = np.where(valid, np.maximum(dsm_abs - ground, 0.0), np.nan).astype(np.float32)
+    diff = dsm_abs - ground
+    known = valid & np.isfinite(diff)
+    if not known.any():
+        raise NoOverlap("the DSM and the DEM share no valid pixel on the scene grid")
+    below = 0.0 if estimated else float((diff[known] < -BELOW_GROUND_TOL_M).mean())
+    if below > 0.5:
+        raise IngestError(
+            f"the DSM lies below the ground on {below:.0%} of the scene (median "
+            f"{float(np.median(diff[known])):+.1f} m); check its vertical unit (--dsm-units), "
+            "datum, or --ground-alt/--dem")
+    if below > 0.01:
+        warnings.warn(f"the DSM lies more than {BELOW_GROUND_TOL_M:g} m below the ground on "
+                      f"{below:.1%} of the scene; those heights are set to 0", GeonavWarning,
+                      stacklevel=3)
+    height = np.where(valid, np.maximum(diff, 0.0), np.nan).astype(np.float32)
     return height, ground_ref
 
 
@@ -359,15 +293,31 @@ def check_coverage(scene: Scene, *, obs_size_px: int = 84, fov_deg: float = 90.0
     return messages
 
 
-def _mask_coverage(mask: np.ndarray, bbox_lonlat: tuple | None) -> list[str]:
+def _mask_coverage(mask: np.ndarray, bbox_lonlat: tuple | None,
+                   rotated: bool = False) -> list[str]:
     # The grid hugs the sources, so a few percent of edge pixels can be empty after a
     # reprojection; more than that means missing tiles or a bbox reaching past the data.
     valid = float(mask.mean())
     if valid >= 0.95:
         return []
-    why = ("the bbox reaches beyond the imagery, or tiles are missing or corrupt"
-           if bbox_lonlat is not None else "missing or corrupt tiles, or gaps between sources")
+    if bbox_lonlat is not None:
+        why = "the bbox reaches beyond the imagery, or tiles are missing or corrupt"
+    elif rotated:
+        why = "a source is rotated, so the north-up grid around it has empty corners"
+    else:
+        why = "missing or corrupt tiles, or gaps between sources"
     return [f"only {valid:.0%} of the scene has imagery ({why}); the rest is masked"]
+
+
+def check_writable_folder(out: Path) -> None:
+    """IngestError unless ``out`` can be created: fail before the work, not after it."""
+    parent = out.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise IngestError(f"cannot write {out}: {parent} is a file, not a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise IngestError(f"cannot write {out}: no write permission in {parent}")
 
 
 def ingest(
@@ -388,6 +338,9 @@ def ingest(
     progress: Progress | None = None,
     tms: bool = False,
     zoom: int | None = None,
+    rgb_bands: Sequence[int] | None = None,
+    dsm_units: str | None = None,
+    memory_budget_mb: float | None = None,
 ) -> Scene:
     """Turn source imagery (and an optional surface model) into a scene package.
 
@@ -401,7 +354,8 @@ def ingest(
         ground_alt_m: the ground height AMSL when there is no DEM.
         gsd_m: the scene GSD; default: the finest the sources support.
         origin: the scene origin; default: the centre of the sources (or bbox).
-        bbox_lonlat: (west, south, east, north) to cut the scene to.
+        bbox_lonlat: (west, south, east, north) to cut the scene to; only that
+            window of each file is read.
         attribution: the licence/attribution text the user holds for the imagery;
             default: the attributions the sources carry (fetch sidecar, MBTiles metadata).
         overwrite: replace an existing package.
@@ -410,6 +364,11 @@ def ingest(
         progress: callback (phase, fraction).
         tms: tile folders among ``sources`` are in TMS row order.
         zoom: the zoom level to read from tile folders / MBTiles (default: highest).
+        rgb_bands: 1-based bands of GDAL rasters to use as R,G,B (default: colour
+            interpretation, else 1,2,3).
+        dsm_units: unit of the DSM/DEM values, "m", "ft" or "us-ft" (default: from
+            the file, see :func:`geonav.tiles.raster.height_unit_factor`).
+        memory_budget_mb: refuse reads and grids above this many MiB (default 4096).
 
     Returns:
         The written scene (also opened-equivalent: arrays in memory).
@@ -417,14 +376,29 @@ def ingest(
     out = Path(out)
     if out.exists() and not overwrite:
         raise IngestError(f"{out} exists; use --force to replace it")
+    check_writable_folder(out)
     if not name or "/" in name:
         raise IngestError(f"scene name {name!r} must be a non-empty name without '/'")
+    if ground_alt_m is not None and not math.isfinite(ground_alt_m):
+        raise IngestError(f"ground_alt_m must be a finite height in metres, got {ground_alt_m}")
+    if gsd_m is not None and not (math.isfinite(gsd_m) and gsd_m > 0):
+        raise IngestError(f"gsd must be a positive number of metres, got {gsd_m}")
+    if compress.upper() not in ("JPEG", "DEFLATE"):
+        raise IngestError(f"compress {compress!r}: use JPEG or DEFLATE")
+    if dem is not None and dsm is None:
+        raise IngestError("--dem needs --dsm: the DEM is the ground the DSM heights are "
+                          "measured from")
     rasters = [s if isinstance(s, RasterSource) else
-               open_source(s, tms=tms, zoom=zoom, bbox_lonlat=bbox_lonlat, progress=progress)
+               open_source(s, tms=tms, zoom=zoom, bbox_lonlat=bbox_lonlat, progress=progress,
+                           rgb_bands=rgb_bands, target_gsd_m=gsd_m,
+                           memory_budget_mb=memory_budget_mb)
                for s in sources]
     if progress:
         progress("read", 1.0)
     grid = plan_grid(rasters, gsd_m=gsd_m, origin=origin, bbox_lonlat=bbox_lonlat)
+    # rgb + mask + the 4-band warp output, and with a DSM three float32 grids
+    check_budget(grid.width * grid.height * (8 + (12 if dsm is not None else 0)),
+                 memory_budget_mb, f"a {grid.width}x{grid.height} px scene grid")
     rgb, mask, resampling = reproject_rgb(rasters, grid, progress)
     if not attribution:
         attribution = "; ".join(dict.fromkeys(
@@ -433,14 +407,18 @@ def ingest(
     ground_ref = origin.alt_m if origin is not None else 0.0
     dsm_info = None
     if dsm is not None:
-        dsm_src = dsm if isinstance(dsm, RasterSource) else open_raster(dsm, bands=1)
+        dsm_src = dsm if isinstance(dsm, RasterSource) else open_raster(
+            dsm, bands=1, bbox_lonlat=bbox_lonlat, memory_budget_mb=memory_budget_mb,
+            height_units=dsm_units)
         dsm_abs = reproject_heights(dsm_src, grid)
         if not np.isfinite(dsm_abs).any():
             raise NoOverlap(f"the DSM {dsm_src.info.get('file', '')} does not overlap the "
                             "imagery; check its CRS and extent")
         dem_grid = None
         if dem is not None:
-            dem_src = dem if isinstance(dem, RasterSource) else open_raster(dem, bands=1)
+            dem_src = dem if isinstance(dem, RasterSource) else open_raster(
+                dem, bands=1, bbox_lonlat=bbox_lonlat, memory_budget_mb=memory_budget_mb,
+                height_units=dsm_units)
             dem_grid = reproject_heights(dem_src, grid)
             if not np.isfinite(dem_grid).any():
                 raise NoOverlap("the DEM does not overlap the imagery")
@@ -461,7 +439,8 @@ def ingest(
         mask_fraction=float(mask.mean()),
         **(extra_manifest or {}),
     )
-    for message in check_coverage(scene) + _mask_coverage(mask, bbox_lonlat):
+    rotated = any(r.transform.b or r.transform.d for r in rasters)
+    for message in check_coverage(scene) + _mask_coverage(mask, bbox_lonlat, rotated):
         warnings.warn(f"scene {name}: {message}", GeonavWarning, stacklevel=2)
     scene.save(out, overwrite=overwrite, compress=compress)
     if progress:
@@ -525,8 +504,13 @@ def ingest_synthetic(
     res = gsd_m * scale
     h, w = image.rgb.shape[:2]
     transform = Affine(res, 0.0, mx - w * res / 2, 0.0, -res, my + h * res / 2)
-    folder = Path(keep_sources) if keep_sources else Path(tempfile.mkdtemp(prefix="geonav-synth-"))
-    folder.mkdir(parents=True, exist_ok=True)
+    if keep_sources:
+        folder = Path(keep_sources)
+        folder.mkdir(parents=True, exist_ok=True)
+    else:
+        tmp_root = Path(tempfile.gettempdir())
+        clean_stale_temps(tmp_root, "geonav-synth")
+        folder = temp_dir(tmp_root, "geonav-synth")
     try:
         ortho_path, dsm_path = folder / f"{kind}-{seed}-3857.tif", folder / f"{kind}-{seed}-dsm.tif"
         common = dict(driver="GTiff", width=w, height=h, crs="EPSG:3857", transform=transform,

@@ -12,12 +12,14 @@ from __future__ import annotations
 import logging
 import os
 import sqlite3
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from geonav.errors import TileError
+from geonav.errors import GeonavWarning, TileError
 from geonav.scene import sha256_file
+from geonav.tiles.raster import RasterSource
 from geonav.tiles.xyz import (
     MAX_ZOOM,
     Progress,
@@ -26,6 +28,8 @@ from geonav.tiles.xyz import (
     choose_zoom,
     flip_y,
     mosaic_info,
+    parse_bounds,
+    row_scheme_verdict,
 )
 
 log = logging.getLogger(__name__)
@@ -59,7 +63,8 @@ def read_mbtiles(
     zoom: int | None = None,
     bbox_lonlat: Sequence[float] | None = None,
     progress: Progress | None = None,
-):
+    memory_budget_mb: float | None = None,
+) -> RasterSource:
     """Read one zoom level of an MBTiles file into an EPSG:3857 RasterSource.
 
     Args:
@@ -67,9 +72,10 @@ def read_mbtiles(
         zoom: the zoom level; default the highest present (warning when several).
         bbox_lonlat: read only the tiles meeting this (west, south, east, north).
         progress: callback (phase, fraction).
+        memory_budget_mb: refuse mosaics above this many MiB (default 4096).
 
     Returns:
-        A :class:`~geonav.tiles.ingest.RasterSource`; ``info`` has the zoom, scheme,
+        A :class:`~geonav.tiles.raster.RasterSource`; ``info`` has the zoom, scheme,
         tile counts, estimated native GSD and the tileset's name/attribution metadata.
 
     Raises:
@@ -77,8 +83,6 @@ def read_mbtiles(
             nothing decodable, or a bbox that misses.
     """
     from rasterio.crs import CRS
-
-    from geonav.tiles.ingest import RasterSource
 
     path = Path(path)
     if not path.is_file():
@@ -105,6 +109,20 @@ def read_mbtiles(
         n = 1 << z
         rows = con.execute(
             "SELECT tile_column, tile_row FROM tiles WHERE zoom_level = ?", (z,)).fetchall()
+        bounds = parse_bounds(meta["bounds"]) if meta.get("bounds") else None
+        if bounds is not None:
+            good = [(c, r) for c, r in rows if isinstance(c, int) and isinstance(r, int)
+                    and 0 <= c < n and 0 <= r < n]
+            if row_scheme_verdict(z, good, [bounds],
+                                  stored_as_tms=scheme == "tms") == "flipped":
+                other = "xyz" if scheme == "tms" else "tms"
+                warnings.warn(
+                    f"{path}: read as {scheme.upper()} rows (metadata scheme "
+                    f"{meta.get('scheme', 'missing, so TMS')!s}) the zoom-{z} tiles miss the "
+                    f"file's own bounds {bounds}; read as {other.upper()} they meet them, "
+                    f"so reading them as {other.upper()}. Fix the file with a metadata row "
+                    f"scheme={other}", GeonavWarning, stacklevel=2)
+                scheme = other
         refs = []
         skipped = 0
         for col, row in rows:
@@ -129,7 +147,8 @@ def read_mbtiles(
         # sqlite3 connections serialise their calls; one decoding thread is enough
         # to overlap reads with decoding.
         data, mask, transform, stats, digest = build_mosaic(
-            z, refs, where=str(path), bbox_lonlat=bbox_lonlat, progress=progress, workers=2)
+            z, refs, where=str(path), bbox_lonlat=bbox_lonlat, progress=progress, workers=2,
+            memory_budget_mb=memory_budget_mb)
     finally:
         con.close()
     info: dict[str, Any] = mosaic_info("mbtiles", path, z, transform, mask.shape, stats,

@@ -4,7 +4,7 @@ Web-map tiles come in the XYZ ("Google", OSM slippy map) numbering, rows
 counted from the north; TMS folders count rows from the south
 (``y_tms = 2^z - 1 - y_xyz``). Tile bounds come from morecantile's
 ``WebMercatorQuad`` tile matrix set. The mosaic is one
-:class:`~geonav.tiles.ingest.RasterSource` in EPSG:3857 with a mask that is
+:class:`~geonav.tiles.raster.RasterSource` in EPSG:3857 with a mask that is
 False where a tile is missing, could not be decoded, or is transparent, so it
 goes through :func:`geonav.tiles.ingest.ingest` like any GeoTIFF.
 
@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from geonav.errors import GeonavWarning, TileError
+from geonav.tiles.raster import RasterSource, check_budget
 
 log = logging.getLogger(__name__)
 
@@ -208,6 +209,7 @@ def build_mosaic(
     bbox_lonlat: Sequence[float] | None = None,
     progress: Progress | None = None,
     workers: int = 4,
+    memory_budget_mb: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, Any, MosaicStats, str]:
     """Decode tiles at zoom ``z`` and paste them into one EPSG:3857 mosaic.
 
@@ -266,6 +268,9 @@ def build_mosaic(
                         f"{where}: the zoom {z} tiles span {nx}x{ny} tiles "
                         f"({nx * tile_px}x{ny * tile_px} px); cut with --bbox")
                 else:
+                    # the mosaic, its mask, and the alpha copy the reprojection makes
+                    check_budget(nx * ny * tile_px * tile_px * 9, memory_budget_mb,
+                                 f"the {nx}x{ny} zoom-{z} tiles of {where}")
                     data = np.zeros((3, ny * tile_px, nx * tile_px), np.uint8)
                     mask = np.zeros((ny * tile_px, nx * tile_px), bool)
             if error is None and rgb.shape[:2] != (tile_px, tile_px):
@@ -382,7 +387,8 @@ def read_xyz(
     tms: bool = False,
     bbox_lonlat: Sequence[float] | None = None,
     progress: Progress | None = None,
-):
+    memory_budget_mb: float | None = None,
+) -> RasterSource:
     """Read a ``{z}/{x}/{y}.{png,jpg,jpeg,webp}`` folder into an EPSG:3857 RasterSource.
 
     Args:
@@ -392,19 +398,19 @@ def read_xyz(
         tms: rows are in TMS order (counted from the south) instead of XYZ.
         bbox_lonlat: read only the tiles meeting this (west, south, east, north).
         progress: callback (phase, fraction).
+        memory_budget_mb: refuse mosaics above this many MiB (default 4096).
 
     Returns:
-        A :class:`~geonav.tiles.ingest.RasterSource` (3 bands uint8, mask False on
+        A :class:`~geonav.tiles.raster.RasterSource` (3 bands uint8, mask False on
         missing, corrupt and transparent pixels); ``info`` has the zoom, scheme,
         tile counts, the estimated native GSD (``156543.03 * cos(lat) / 2^z`` for
         256 px tiles) and, for a ``geonav tiles fetch`` cache, the attribution.
 
     Raises:
-        TileError: not a folder, no tiles, no tiles at ``zoom``, nothing decodable.
+        TileError: not a folder, no tiles, no tiles at ``zoom``, nothing decodable, or
+            ``tms`` contradicting the bbox the cache was fetched for.
     """
     from rasterio.crs import CRS
-
-    from geonav.tiles.ingest import RasterSource
 
     folder = Path(folder)
     if not folder.is_dir():
@@ -415,16 +421,72 @@ def read_xyz(
                         f"{{{','.join(TILE_EXTS)}}}; point at the folder holding the zoom "
                         "folders")
     z = choose_zoom(levels, zoom, str(folder))
+    sidecar = read_sidecar(folder)
+    fetched = _fetched_bboxes(sidecar, z)
+    if tms and fetched:
+        verdict = row_scheme_verdict(z, list(levels[z]), fetched, stored_as_tms=True)
+        if verdict == "flipped":
+            raise TileError(
+                f"{folder}: with --tms the zoom-{z} tiles land outside the bbox "
+                f"{fetched[0]} this cache was fetched for; its rows are XYZ, drop --tms")
     refs = []
     for (x, y_stored), path in levels[z].items():
         y = flip_y(z, y_stored) if tms else y_stored
         refs.append(TileRef(x, y, f"{z}/{x}/{y_stored}{path.suffix}", path.read_bytes))
     data, mask, transform, stats, digest = build_mosaic(
-        z, refs, where=str(folder), bbox_lonlat=bbox_lonlat, progress=progress)
+        z, refs, where=str(folder), bbox_lonlat=bbox_lonlat, progress=progress,
+        memory_budget_mb=memory_budget_mb)
     info = mosaic_info("xyz", folder, z, transform, mask.shape, stats, digest,
                        "tms" if tms else "xyz")
-    sidecar = read_sidecar(folder)
     for key in ("attribution", "url_template", "fetched_utc", "user_agent"):
         if sidecar.get(key):
             info[key] = sidecar[key]
     return RasterSource(data, CRS.from_epsg(3857), transform, mask, info)
+
+
+# -- row scheme checks -----------------------------------------------------------------------
+
+def _fetched_bboxes(sidecar: dict[str, Any], z: int) -> list[tuple[float, ...]]:
+    """The lon/lat bboxes a fetch cache was filled for at zoom ``z`` (from its sidecar)."""
+    boxes = []
+    for run in sidecar.get("runs", []) if isinstance(sidecar.get("runs"), list) else []:
+        try:
+            if int(run.get("zoom")) == z:
+                box = tuple(float(v) for v in run["bbox_lonlat"])
+                if len(box) == 4:
+                    boxes.append(box)
+        except (AttributeError, KeyError, TypeError, ValueError):
+            continue
+    return boxes
+
+
+def parse_bounds(text: str) -> tuple[float, float, float, float] | None:
+    """An MBTiles ``bounds`` value 'w,s,e,n' (None when unusable)."""
+    try:
+        w, s, e, n = (float(v) for v in str(text).split(","))
+    except ValueError:
+        return None
+    if not all(map(math.isfinite, (w, s, e, n))) or not (w < e and s < n):
+        return None
+    return w, s, e, n
+
+
+def row_scheme_verdict(z: int, stored: Sequence[tuple[int, int]],
+                       bounds: Sequence[Sequence[float]], *, stored_as_tms: bool) -> str:
+    """Whether stored (x, row) indices read in the stated scheme meet the stated bounds.
+
+    Returns "ok" (they do, or the check cannot tell), or "flipped" (none meets the
+    bounds as stated, but some do with the rows counted from the other side).
+    """
+    hits = {False: 0, True: 0}
+    for box in bounds:
+        try:
+            x0, y0, x1, y1 = tile_range_for_bbox(box, z)
+        except TileError:
+            continue
+        for x, row in stored:
+            y_stated = flip_y(z, row) if stored_as_tms else row
+            for flipped, y in ((False, y_stated), (True, flip_y(z, y_stated))):
+                if x0 <= x <= x1 and y0 <= y <= y1:
+                    hits[flipped] += 1
+    return "flipped" if hits[False] == 0 and hits[True] > 0 else "ok"

@@ -1,0 +1,305 @@
+"""Helpers shared by the CLI faces (``geonav`` and its subcommand modules).
+
+The root :mod:`geonav.cli` imports the subcommand modules; they take what they
+share from here, so no module imports the root CLI and no two faces import
+each other. Heavy imports (tqdm, torch) stay inside the functions.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import re
+import sys
+import warnings
+from collections.abc import Callable
+from typing import Any, NoReturn
+
+from geonav.errors import ConfigError
+
+
+def progress_bar(desc: str) -> Callable[[str, float], None]:
+    """A progress callback (phase, fraction) drawn with tqdm on stderr."""
+    from tqdm import tqdm
+
+    bars: dict[str, tqdm] = {}
+
+    def update(phase: str, fraction: float) -> None:
+        bar = bars.get(phase)
+        if bar is None:
+            bar = bars[phase] = tqdm(total=1000, desc=f"{desc}: {phase}", leave=False,
+                                     unit="‰", disable=None)
+        bar.n = int(max(0.0, min(1.0, fraction)) * 1000)
+        bar.refresh()
+        if fraction >= 1.0:
+            bar.close()
+
+    return update
+
+
+def load_toml(path: str | None) -> dict[str, Any]:
+    """The TOML file at ``path`` as a dict ({} for None); ConfigError if unreadable."""
+    if path is None:
+        return {}
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # pragma: no cover - Python 3.10
+        import tomli as tomllib  # type: ignore[no-redef]
+
+    try:
+        with open(path, "rb") as f:
+            data = tomllib.load(f)
+    except FileNotFoundError as err:
+        raise ConfigError(f"config file {path} does not exist") from err
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError(f"config file {path} is not valid TOML: {err}") from err
+    except OSError as err:
+        raise ConfigError(f"config file {path} cannot be read: {err.strerror or err}") from err
+    # Training configs hold tables only ([net], [a3c], [meta], ...): a scalar there is a
+    # typo that would otherwise surface as a TypeError deep in the config code.
+    for key, value in data.items():
+        if not isinstance(value, dict):
+            raise ConfigError(f"config file {path}: [{key}] must be a table, got "
+                              f"{type(value).__name__} {value!r}; write it as [{key}] with "
+                              "key = value lines under it")
+    return data
+
+
+def progress_interval_s() -> float:
+    """Seconds between progress lines when stderr is not a terminal (GEONAV_PROGRESS_S, 30)."""
+    import os
+
+    try:
+        return max(0.0, float(os.environ.get("GEONAV_PROGRESS_S", "30")))
+    except ValueError:
+        return 30.0
+
+
+def is_terminal() -> bool:
+    return bool(getattr(sys.stderr, "isatty", lambda: False)())
+
+
+class LineProgress:
+    """One line on stderr at most every ``interval_s`` (for logs: no carriage returns)."""
+
+    def __init__(self, interval_s: float | None = None) -> None:
+        import time
+
+        self.interval_s = progress_interval_s() if interval_s is None else interval_s
+        self._clock = time.monotonic
+        self._last = self._clock()
+
+    def due(self) -> bool:
+        now = self._clock()
+        if now - self._last >= self.interval_s:
+            self._last = now
+            return True
+        return False
+
+    @staticmethod
+    def write(text: str) -> None:
+        print(text, file=sys.stderr, flush=True)
+
+
+class TqdmProgress:
+    """Turns trainer callbacks into a tqdm bar on a terminal (success-rate moving average in
+    the postfix), or into one progress line every 30 s when stderr is not a terminal."""
+
+    def __init__(self, disable: bool) -> None:
+        from tqdm import tqdm  # type: ignore[import-untyped]
+
+        from geonav.policy.callbacks import Callback
+
+        if not disable and not is_terminal():
+            self.callback = _line_callback(Callback)
+            return
+
+        class _CB(Callback):
+            def on_train_start(cb, info: dict[str, Any]) -> None:
+                cb.bar = tqdm(total=info["episodes"], initial=info["start_episode"],
+                              unit="ep", disable=disable, dynamic_ncols=True)
+                cb.recent: list[float] = []
+
+            def on_episode(cb, record: dict[str, Any]) -> None:
+                cb.recent = (cb.recent + [float(record["success"])])[-100:]
+                cb.bar.update(1)
+                cb.bar.set_postfix(sr=f"{sum(cb.recent) / len(cb.recent):.2f}",
+                                   len=record["length"])
+
+            def on_train_end(cb, result: Any) -> None:
+                if hasattr(cb, "bar"):
+                    cb.bar.close()
+
+        self.callback = _CB()
+
+
+def _line_callback(base: type) -> Any:
+    import time
+
+    class _Lines(base):  # type: ignore[misc, valid-type]
+        def on_train_start(cb, info: dict[str, Any]) -> None:
+            cb.lines = LineProgress()
+            cb.total = info["episodes"]
+            cb.recent: list[float] = []
+            cb.t0 = time.monotonic()
+            LineProgress.write(f"training: episode {info['start_episode']}/{cb.total}")
+
+        def on_episode(cb, record: dict[str, Any]) -> None:
+            cb.recent = (cb.recent + [float(record["success"])])[-100:]
+            if cb.lines.due():
+                LineProgress.write(
+                    f"training: episode {record['episode']}/{cb.total}, "
+                    f"{record.get('env_steps', '?')} env steps, training SR (last "
+                    f"{len(cb.recent)}) {sum(cb.recent) / len(cb.recent):.2f}, "
+                    f"{time.monotonic() - cb.t0:.0f} s")
+
+        def on_eval(cb, row: dict[str, Any]) -> None:
+            LineProgress.write(f"evaluation at episode {row['episode']}: greedy SR "
+                               f"{row['greedy_sr']:.2f}, sampled SR {row['sampled_sr']:.2f} "
+                               f"from {row['starts']} starts")
+
+    return _Lines()
+
+
+# -- argparse: one-line errors, negative numbers, typed values -------------------------------
+
+#: What starts like a negative number ("-122.3,37.7,...", "-5", "-.5") is a value, not an
+#: option (the rule of Python 3.13; older argparse only accepts "-12" or "-1.5").
+_NEGATIVE_LIST = re.compile(r"^-\.?\d")
+
+
+class GeonavParser(argparse.ArgumentParser):
+    """ArgumentParser whose errors are one line (exit 2) and whose values may be negative.
+
+    Subparsers inherit the class (argparse passes ``parser_class=type(self)``).
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = _NEGATIVE_LIST
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _number(text: str, what: str, kind: type) -> Any:
+    try:
+        value = kind(text)
+    except (TypeError, ValueError):
+        raise argparse.ArgumentTypeError(f"{text!r} is not {what}") from None
+    if kind is float and not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"{text!r} is not {what} (finite numbers only)")
+    return value
+
+
+def finite_float(text: str) -> float:
+    """argparse type: any finite number (no nan/inf)."""
+    return _number(text, "a finite number", float)
+
+
+def positive_float(text: str) -> float:
+    """argparse type: a finite number > 0."""
+    value = _number(text, "a positive number", float)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"{text!r} must be > 0")
+    return value
+
+
+def nonneg_float(text: str) -> float:
+    """argparse type: a finite number >= 0."""
+    value = _number(text, "a number >= 0", float)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{text!r} must be >= 0")
+    return value
+
+
+def positive_int(text: str) -> int:
+    """argparse type: an integer >= 1."""
+    value = _number(text, "an integer", int)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} must be an integer >= 1")
+    return value
+
+
+def nonneg_int(text: str) -> int:
+    """argparse type: an integer >= 0."""
+    value = _number(text, "an integer", int)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{text!r} must be an integer >= 0")
+    return value
+
+
+def float_list(text: str, *, positive: bool = True) -> tuple[float, ...]:
+    """'300,75,45' -> (300.0, 75.0, 45.0); at least one value, each finite (and > 0)."""
+    parts = [p.strip() for p in text.split(",")]
+    if not text.strip() or not all(parts):
+        raise argparse.ArgumentTypeError(f"{text!r}: give comma-separated numbers like 75,45,15")
+    conv = positive_float if positive else finite_float
+    return tuple(conv(p) for p in parts)
+
+
+def positive_floats(text: str) -> tuple[float, ...]:
+    """argparse type: a non-empty comma list of numbers > 0 (altitudes, levels)."""
+    return float_list(text)
+
+
+def lonlat_arg(text: str) -> Any:
+    """argparse type: 'lon,lat[,alt]' in degrees (and metres) -> LonLat."""
+    from geonav.errors import GeoError
+    from geonav.geo import LonLat
+
+    parts = [p.strip() for p in text.split(",")]
+    if len(parts) not in (2, 3):
+        raise argparse.ArgumentTypeError(f"{text!r}: give lon,lat[,alt] in degrees, "
+                                         "e.g. -122.42,37.77")
+    values = [finite_float(p) for p in parts]
+    try:
+        return LonLat(*values)
+    except GeoError as err:
+        raise argparse.ArgumentTypeError(f"{text!r}: {err}") from None
+
+
+def bbox_arg(text: str) -> tuple[float, float, float, float]:
+    """argparse type: 'west,south,east,north' in degrees, w < e, s < n, inside WGS 84."""
+    parts = [p.strip() for p in text.split(",")]
+    if len(parts) != 4:
+        raise argparse.ArgumentTypeError(f"{text!r}: give west,south,east,north in degrees, "
+                                         "e.g. -122.45,37.75,-122.40,37.80")
+    w, s, e, n = (finite_float(p) for p in parts)
+    if not (-180 <= w <= 180 and -180 <= e <= 180 and -90 <= s <= 90 and -90 <= n <= 90):
+        raise argparse.ArgumentTypeError(f"{text!r}: lon must be within -180..180 and lat "
+                                         "within -90..90 (lon first)")
+    if not (w < e and s < n):
+        raise argparse.ArgumentTypeError(f"{text!r}: need west < east and south < north")
+    return w, s, e, n
+
+
+# -- warnings as single lines ----------------------------------------------------------------
+
+def one_line_warnings() -> None:
+    """Show every warning as one ``warning: ...`` line on stderr; mute third-party
+    deprecation noise (it is not the user's to act on)."""
+    def show(message: Any, category: type, filename: str, lineno: int,
+             file: Any = None, line: str | None = None) -> None:
+        text = " ".join(str(message).split())
+        print(f"warning: {text}", file=file or sys.stderr)
+
+    warnings.showwarning = show
+    warnings.simplefilter("default")
+    for cat in (DeprecationWarning, PendingDeprecationWarning, FutureWarning):
+        warnings.filterwarnings("ignore", category=cat)
+
+
+def oserror_line(err: OSError) -> str:
+    """An OSError as one line naming the path: 'cannot write out/x: Permission denied'."""
+    import errno
+
+    what = err.strerror or str(err)
+    if err.errno in (errno.EEXIST, errno.ENOTDIR):
+        what += " (a file stands where a folder is needed; choose another output path)"
+    elif err.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+        what += " (choose an output path you can write to)"
+    if err.filename is not None:
+        return f"cannot write {err.filename}: {what}" if err.errno != errno.ENOENT else \
+            f"{err.filename}: {what}"
+    return what

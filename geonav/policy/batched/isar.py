@@ -1,0 +1,210 @@
+"""ISAR (ALGORITHMS.md (c)) on the batched engine, with exact factored per-episode theta.
+
+phi is the model's parameters (Adam with lr beta = ``cfg.lr``); each slot's interaction
+policy theta_s is phi plus its own rank-one factors
+(:class:`~geonav.policy.batched.core.Factors`), exact, not approximated. All slots act in
+lock-step with the graph kept (``factored_step``), on a global clock:
+
+* a **segment** is N steps; at every segment end each slot's segment loss L_AC(theta_s; S)
+  (masked GAE, bootstrap V(s_next) under theta_s, detached; 0 at an episode end) joins the
+  window; at the first K - 1 segment ends of a window every live slot takes its inner
+  step theta_s <- theta_s - alpha grad L_AC (``create_graph = second_order``), from the
+  steps of its current episode only;
+* a **window** is K segments; at its end the adaptive update takes the gradient of the
+  window's losses summed over its segments and averaged over the slots w.r.t. phi (clip,
+  one Adam step), resets every theta_s to the new phi and detaches h and the
+  previous-action input;
+* a slot whose episode ends mid-window starts a new episode at once with theta_s = phi
+  (its factors cleared) and h = 0; the finished episode's losses stay in the window
+  (the partial window is flushed at the window end: phi has not changed since they were
+  taken, so this is the same gradient as a flush at done).
+
+With B = 1 the first episode follows Algorithm 1 exactly; later episodes (and every
+episode at B > 1) begin wherever the global clock stands, so their first segment and
+window may be shorter than N and K. This is the synchronous form of ISAR, as batched A3C
+is of A3C; the asynchronous per-episode schedule stays in :mod:`geonav.policy.isar`
+(``engine = "async"``). Needs a frozen encoder: the trainable CNN's convolutions are not
+factored (the CLI falls back to the async engine for it).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+import torch
+
+from geonav.errors import ConfigError
+from geonav.policy.batched.core import Adapted, Recorder, factored_step, sample_actions
+from geonav.policy.batched.teacher import BatchedTeacher, kl_terms
+from geonav.policy.batched.trainer import BatchedTrainer, loss_stats
+from geonav.policy.isar import gradient_path, teacher_record
+from geonav.policy.losses import LossTerms, gae_returns, policy_value_terms
+from geonav.policy.meta_config import ISARConfig
+from geonav.policy.model import detach_state
+
+
+def clear_slots(adapted: Adapted, keep: torch.Tensor) -> Adapted:
+    """theta_s <- phi for the slots where ``keep`` (B,) is 0 (their factors zeroed)."""
+    k = keep.view(-1, 1)
+    return {key: replace(f, U=None if f.U is None else f.U * k.unsqueeze(-1),
+                         db=None if f.db is None else f.db * k) for key, f in adapted.items()}
+
+
+class BatchedISARTrainer(BatchedTrainer):
+    """ISAR on the batched engine (see the module docstring); ``cfg`` is an :class:`ISARConfig`."""
+
+    algorithm = "isar"
+    config_key = "isar"
+    adapted_weights = True
+    cfg: ISARConfig
+
+    def __init__(self, env_factory: Any, net_cfg: Any = None, cfg: ISARConfig | None = None,
+                 *, teacher: Any = None, prev_view: Any = None, **kwargs: Any) -> None:
+        self.teacher_spec = teacher
+        self.prev_view_spec = prev_view
+        cfg = cfg if cfg is not None else ISARConfig()
+        if not cfg.flush_partial_window:
+            raise ConfigError("flush_partial_window = false is implemented on engine = "
+                              "'async' only")
+        super().__init__(env_factory, net_cfg, cfg, **kwargs)
+
+    def resolved_config(self) -> dict[str, Any]:
+        d = super().resolved_config()
+        d["gradient_path"] = {**gradient_path(self.cfg), "path": "batched factored",
+                              "inner_updates": "per-slot rank-one factors of every linear "
+                              "layer, autograd.grad w.r.t. the layer outputs (create_graph="
+                              f"{self.cfg.second_order})"}
+        d["teacher"] = teacher_record(self.teacher_spec, self.prev_view_spec)
+        return d
+
+    def _setup(self) -> None:
+        super()._setup()
+        self.gram = gram_matrix(self.table)
+        self.teacher = BatchedTeacher(self.teacher_spec, self.batch, self.device) \
+            if self.teacher_spec is not None else None
+        self.inner = np.zeros(self.batch, np.int64)
+        self.adapt = np.zeros(self.batch, np.int64)
+
+    def record(self, f: dict[str, Any], stats: dict[str, float]) -> dict[str, Any]:
+        rec = super().record(f, stats)
+        rec.update({"inner_updates": f["inner_updates"], "adaptive_updates":
+                    f["adaptive_updates"], "kl_weight": self.teacher.weight(f["started_as"])
+                    if self.teacher is not None else 0.0})
+        return rec
+
+    def segment(self, params: Any, adapted: Adapted, state: Any
+                ) -> tuple[LossTerms, LossTerms, Recorder, Adapted, Any, list[dict[str, Any]]]:
+        """N lock-step steps with the graph: (all-steps loss, current-episode loss,
+        recorder, adapted weights (finished slots reset to phi), state, finished episodes)."""
+        cfg, e, dev = self.cfg, self.net_cfg.embed_dim, self.device
+        n, b = cfg.n_steps, self.batch
+        rec = Recorder(gram=self.gram)
+        logits, values, actions, tlogp, lams = [], [], [], [], []
+        rewards = np.zeros((n, b))
+        ends = np.zeros((n, b), bool)
+        end_values = np.zeros((n, b)) if cfg.loss.bootstrap_on_truncation else None
+        current = torch.ones(n, b, dtype=values_dtype(self), device=dev)
+        finals: list[dict[str, Any]] = []
+        assert self.table is not None
+        for t in range(n):
+            vi, ti = self.slot_indices()
+            if self.teacher is not None:
+                tlogp.append(self.teacher.step(vi, ti, self.fresh))
+                lams.append([self.teacher.weight(int(k)) for k in self.slot_episode])
+            logit, value, state = factored_step(params, e, self.table[vi], self.table[ti],
+                                                state, adapted, rec, self.fresh, vi, ti,
+                                                self.prev_features(vi))
+            a = sample_actions(logit, self.rng).to(dev)
+            res = self.env_step(a)
+            if end_values is not None and res.truncated.any():
+                with torch.no_grad():
+                    fv = torch.from_numpy(res.final_view).to(dev)
+                    _, v_end, _ = factored_step(params, e, self.table[fv], self.table[ti],
+                                                state, adapted, None, None, fv, ti,
+                                                self.prev_features(fv))
+                end_values[t] = np.where(res.truncated, v_end.cpu().numpy(), 0.0)
+            logits.append(logit)
+            values.append(value)
+            actions.append(a)
+            rewards[t] = res.rewards
+            ends[t] = res.done
+            if res.done.any():
+                done = torch.from_numpy(res.done).to(dev)
+                current[:t + 1, done] = 0.0  # later inner steps see the new episode only
+                adapted = clear_slots(adapted, (~done).to(current.dtype))
+                for f in res.final:
+                    s = f["slot"]
+                    f["inner_updates"], f["adaptive_updates"] = int(self.inner[s]), \
+                        int(self.adapt[s]) + 1  # its losses go into this window's update
+                    self.inner[s] = self.adapt[s] = 0
+                finals += res.final
+        with torch.no_grad():  # V(s_next) under theta_s, without advancing the state
+            vi, ti = self.slot_indices()
+            _, v_next, _ = factored_step(params, e, self.table[vi], self.table[ti], state,
+                                         adapted, None, self.fresh, vi, ti,
+                                         self.prev_features(vi))
+        bootstrap = np.where(ends[-1], 0.0, v_next.to("cpu", torch.float64).numpy())
+        lg, vs, acts = torch.stack(logits), torch.stack(values), torch.stack(actions)
+        lc = cfg.loss
+        ret, adv = gae_returns(rewards, vs.detach().to("cpu", torch.float64).numpy(),
+                               bootstrap, ends, lc.gamma, lc.tau, end_values)
+        ret_t = torch.from_numpy(ret).to(dev, vs.dtype)
+        adv_t = torch.from_numpy(adv).to(dev, vs.dtype)
+        full = policy_value_terms(lg, vs, acts, ret_t, adv_t, lc)
+        mine = policy_value_terms(lg, vs, acts, ret_t, adv_t, lc, weights=current)
+        if tlogp:  # + lambda KL(pi_T || pi_theta) in every L_int, lambda of each episode
+            lam = torch.tensor(lams, dtype=lg.dtype, device=dev)                  # (N, B)
+            kl = kl_terms(torch.stack(tlogp).to(lg.dtype), lg) * lam
+            full = replace(full, total=full.total + kl.sum())
+            mine = replace(mine, total=mine.total + (kl * current).sum())
+        return full, mine, rec, adapted, state, finals
+
+    def update(self) -> tuple[list[dict[str, Any]], dict[str, float]]:
+        """One window of K segments and its adaptive update."""
+        cfg = self.cfg
+        params = self.params()
+        adapted: Adapted = {}
+        state = self.state
+        window: list[torch.Tensor] = []
+        finals: list[dict[str, Any]] = []
+        pl = vl = ent = 0.0
+        for k in range(cfg.k_segments):
+            full, mine, rec, adapted, state, fin = self.segment(params, adapted, state)
+            finals += fin
+            window.append(full.total)
+            pl += float(full.policy.detach())
+            vl += float(full.value.detach())
+            ent += float(full.entropy.detach())
+            if k < cfg.k_segments - 1:
+                live = (~self.fresh).to(values_dtype(self))
+                adapted = rec.inner_factors(mine.total, adapted, cfg.alpha,
+                                            create_graph=cfg.second_order, weights=live)
+                self.inner += (~self.fresh).cpu().numpy()
+        self.step_optimizer(torch.stack(window).sum() / self.batch)
+        self.adapt += 1
+        self.state = detach_state(state)
+        b = float(self.batch)
+        terms = LossTerms(torch.tensor(0.0), torch.tensor(pl / b), torch.tensor(vl / b),
+                          torch.tensor(ent / b))
+        return finals, loss_stats(terms, cfg.n_steps * cfg.k_segments)
+
+
+GRAM_MAX_VIEWS = 8192
+"""Above this many views the (C, C) Gram matrix is not built (dense factors instead)."""
+
+
+def gram_matrix(table: torch.Tensor | None) -> torch.Tensor | None:
+    """table @ table.T of the frozen feature table (the view embeddings' factors look their
+    inner products up instead of multiplying (B, R, F) inputs), or None when too large."""
+    if table is None or table.shape[0] > GRAM_MAX_VIEWS:
+        return None
+    return table @ table.T
+
+
+def values_dtype(trainer: BatchedTrainer) -> torch.dtype:
+    return next(trainer.model.parameters()).dtype
+
+
+__all__ = ["BatchedISARTrainer", "clear_slots"]

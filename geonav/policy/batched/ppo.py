@@ -1,0 +1,112 @@
+"""PPO on the batched engine (``--algo ppo``): clipped surrogate, GAE, epochs of minibatches.
+
+Per update (Schulman et al. 2017; CleanRL ``ppo.py``): act ``t_max`` steps in every slot,
+keeping log pi(a_t) and V(s_t); masked GAE from those values
+(:func:`~geonav.policy.losses.gae_returns`, lambda = ``loss.tau``); then ``epochs`` passes,
+each over ``minibatches`` groups of whole slot sequences (the LSTM is recomputed from
+each slot's stored start state with its episode starts, so the recurrent state is right
+for every step of a minibatch), with the loss
+
+    L = -mean min(rho A, clip(rho, 1 - eps, 1 + eps) A) + value_coef mean 1/2 (R - V)^2
+        - beta mean H,    rho = pi(a | s) / pi_old(a | s),
+
+and one Adam step per minibatch (gradient norm clipped to ``max_grad_norm``). The
+network, checkpoints and metrics are the engine's (the same as A3C's).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch.nn import functional as F
+
+from geonav.errors import ConfigError
+from geonav.policy.batched.trainer import BatchedTrainer, RolloutBatch
+from geonav.policy.config import A3CConfig, LossConfig
+
+
+@dataclass(frozen=True)
+class PPOConfig(A3CConfig):
+    """PPO (CleanRL's defaults where the project has none); ``lr`` is Adam's."""
+
+    t_max: int = 32
+    """Steps per slot per rollout (the rollout holds t_max * batch steps)."""
+    lr: float = 1e-3
+    """Adam learning rate."""
+    adam_eps: float = 1e-5
+    """Adam epsilon (CleanRL)."""
+    amsgrad: bool = False
+    """AMSGrad variant (off, as CleanRL)."""
+    max_grad_norm: float = 0.5
+    """Gradient-norm clip per minibatch step."""
+    epochs: int = 4
+    """Passes over each rollout."""
+    minibatches: int = 4
+    """Minibatches per pass: groups of whole slot sequences (at most the batch)."""
+    clip_coef: float = 0.2
+    """epsilon of the clipped surrogate."""
+    normalize_advantages: bool = True
+    """Standardise the advantages of each minibatch."""
+    loss: LossConfig = LossConfig(tau=0.95)
+    """gamma, GAE lambda (tau), entropy weight (beta), value_coef."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.epochs < 1 or self.minibatches < 1:
+            raise ConfigError(f"epochs and minibatches must be >= 1, got {self.epochs}, "
+                              f"{self.minibatches}")
+        if not 0.0 < self.clip_coef < 1.0:
+            raise ConfigError(f"clip_coef must lie in (0, 1), got {self.clip_coef}")
+
+
+class BatchedPPOTrainer(BatchedTrainer):
+    """PPO on the batched engine (see the module docstring); ``cfg`` is a :class:`PPOConfig`."""
+
+    algorithm = "ppo"
+    config_key = "ppo"
+    cfg: PPOConfig
+
+    def __init__(self, env_factory: Any, net_cfg: Any = None, cfg: PPOConfig | None = None,
+                 **kwargs: Any) -> None:
+        super().__init__(env_factory, net_cfg, cfg if cfg is not None else PPOConfig(),
+                         **kwargs)
+
+    def ppo_loss(self, ro: RolloutBatch, slots: torch.Tensor, returns: torch.Tensor,
+                 advantages: torch.Tensor) -> dict[str, torch.Tensor]:
+        cfg = self.cfg
+        logits, values = self.recompute(ro, slots)
+        assert ro.logprobs is not None
+        logp_all = F.log_softmax(logits, -1)
+        logp = logp_all.gather(-1, ro.actions[:, slots].unsqueeze(-1)).squeeze(-1)
+        entropy = -(logp_all.exp() * logp_all).sum(-1).mean()
+        adv = advantages[:, slots]
+        if cfg.normalize_advantages and adv.numel() > 1:
+            adv = (adv - adv.mean()) / (adv.std() + 1e-8)
+        ratio = (logp - ro.logprobs[:, slots]).exp()
+        pg = torch.max(-adv * ratio,
+                       -adv * ratio.clamp(1.0 - cfg.clip_coef, 1.0 + cfg.clip_coef)).mean()
+        value = (0.5 * (returns[:, slots] - values).pow(2)).mean()
+        total = pg - cfg.loss.beta * entropy + cfg.loss.value_coef * value
+        return {"total": total, "policy": pg, "value": value, "entropy": entropy}
+
+    def update(self) -> tuple[list[dict[str, Any]], dict[str, float]]:
+        cfg = self.cfg
+        ro, finals = self.collect(cfg.t_max, keep_policy=True)
+        assert ro.values is not None
+        returns, advantages = self.advantages(ro, ro.values)
+        n_mb = min(cfg.minibatches, self.batch)
+        out: dict[str, torch.Tensor] = {}
+        for _ in range(cfg.epochs):
+            perm = torch.randperm(self.batch, device=self.device)
+            for mb in perm.chunk(n_mb):
+                out = self.ppo_loss(ro, mb, returns, advantages)
+                self.step_optimizer(out["total"])
+        stats = {"policy_loss": float(out["policy"].detach()),
+                 "value_loss": float(out["value"].detach()),
+                 "entropy": float(out["entropy"].detach())}
+        return finals, stats
+
+
+__all__ = ["PPOConfig", "BatchedPPOTrainer"]

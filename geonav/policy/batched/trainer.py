@@ -1,0 +1,420 @@
+"""The batched engine's trainer machinery and its synchronous A3C (A2C form).
+
+:class:`BatchedTrainer` is an :class:`~geonav.policy.a3c.A3CTrainer` whose training loop
+steps B episodes in lock-step in this process (a :class:`~geonav.vecenv.LatticeVecEnv`)
+instead of running worker processes; everything else is the A3C trainer's own: the run
+folder (config.json, metrics.csv with the same columns, checkpoints/ in the same format,
+learning_curve.png), resume, callbacks, the episode budget and checkpoint schedule. So
+``geonav eval``, ``geonav fly`` and the experiment reports read its runs unchanged.
+
+:class:`BatchedA3CTrainer`, per update (ALGORITHMS.md (a) in synchronous form):
+
+1. act ``t_max`` steps in every slot without autograd (slots that finish start a new
+   episode at once, with a zero state), the image part of the network evaluated once per
+   distinct view (:class:`~geonav.policy.batched.core.ActingTables`);
+2. recompute the rollout with the graph in one call from the stored start state, the
+   views encoded once per distinct view (:func:`~geonav.policy.batched.core.sequence_forward`);
+3. masked GAE (:func:`~geonav.policy.losses.gae_returns`: bootstrap V(s_T) for live
+   slots, 0 at episode ends), L_AC per slot (:func:`~geonav.policy.losses.policy_value_terms`)
+   averaged over the B slots, so one update's gradient has the scale of one worker's;
+4. clip the norm to ``max_grad_norm`` and take one Adam step.
+
+With B = 1 and a rollout inside one episode this is exactly the reference worker's update
+(``tests/test_batched_a3c.py``). Records are written after the update of the rollout in
+which an episode ended, with that update's loss figures. A resumed run restores the
+weights, Adam, the episode count and the random streams; episodes in flight at the
+checkpoint are not saved, so every slot starts a new episode.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from geonav.errors import ConfigError
+from geonav.policy.a3c import A3CTrainer, TrainResult
+from geonav.policy.batched.core import (
+    ActingTables,
+    Params,
+    check_supported,
+    core_step,
+    reset_state,
+    sample_actions,
+    sequence_forward,
+)
+from geonav.policy.callbacks import Callback
+from geonav.policy.evaluation import spl
+from geonav.policy.losses import LossTerms, gae_returns, policy_value_terms
+from geonav.policy.model import State
+from geonav.vecenv import LatticeVecEnv, StepResult
+
+DEFAULT_BATCH = 16
+"""Slots per run: the order of the paper's and SAVN's worker counts, so a run's updates
+per episode stay comparable to multi-worker A3C."""
+
+
+def resolve_device(device: str | torch.device | None) -> torch.device:
+    """'cpu' or 'cuda[:i]' as a torch device; CUDA is refused when torch sees no GPU."""
+    try:
+        dev = torch.device(device or "cpu")
+    except RuntimeError as err:
+        raise ConfigError(f"device must be 'cpu' or 'cuda', not {device!r}") from err
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("device 'cuda' was asked for, but torch sees no GPU "
+                          f"(torch {torch.__version__}, CUDA build "
+                          f"{torch.version.cuda or 'none'}); use --device cpu")
+    if dev.type not in ("cpu", "cuda"):
+        raise ConfigError(f"device must be 'cpu' or 'cuda', not {device!r}")
+    return dev
+
+
+@dataclass
+class RolloutBatch:
+    """T steps of B slots, stored for the recompute with graph."""
+
+    start_state: State
+    view_idx: torch.Tensor
+    """(T, B) view index of the observation at each step."""
+    target_idx: torch.Tensor
+    """(T, B) view index of the slot's target at each step."""
+    actions: torch.Tensor
+    """(T, B) long."""
+    rewards: np.ndarray
+    """(T, B) float64."""
+    ends: np.ndarray
+    """(T, B) bool: the step ended the slot's episode."""
+    starts: torch.Tensor
+    """(T, B) bool: the step began a new episode (state zeroed before it)."""
+    bootstrap: np.ndarray
+    """(B,) V(s_T) after the last step (0 where it ended the episode)."""
+    end_values: np.ndarray | None = None
+    """(T, B) V(s) bootstrapped at truncations (``bootstrap_on_truncation``), else None."""
+    logprobs: torch.Tensor | None = None
+    """(T, B) log pi(a_t) while acting (PPO)."""
+    values: torch.Tensor | None = None
+    """(T, B) V(s_t) while acting (PPO)."""
+
+
+class BatchedTrainer(A3CTrainer):
+    """The batched engine (see the module docstring); arguments as :class:`A3CTrainer`,
+    plus ``batch`` (B, slots stepped together) and ``device`` ('cpu' or 'cuda').
+
+    ``cfg.workers`` is recorded but not used: the engine runs in one process with
+    ``cfg.torch_threads`` threads (parallelism comes from running several processes).
+    """
+
+    engine = "batched"
+    prev_view_spec: Any = None
+    """The curriculum's option B source (:class:`geonav.policy.teacher.PrevViewSpec`):
+    the extra input slot gets the view at the slot's cell at the previous altitude."""
+    adapted_weights = False
+    """True for learners with per-episode adapted weights (needs a frozen encoder)."""
+
+    def __init__(self, env_factory: Any, net_cfg: Any = None, cfg: Any = None, *,
+                 batch: int = DEFAULT_BATCH, device: str | torch.device | None = "cpu",
+                 **kwargs: Any) -> None:
+        if batch < 1:
+            raise ConfigError(f"batch must be >= 1, got {batch}")
+        self.batch = int(batch)
+        self.device = resolve_device(device)
+        kwargs.pop("mp_context", None)
+        super().__init__(env_factory, net_cfg, cfg, **kwargs)
+        check_supported(self.model, adapted=self.adapted_weights)
+        # Adam state follows the parameters to the device (load_state_dict casts it).
+        opt_state = self.optimizer.state_dict()
+        self.model.to(self.device)
+        self.params_list: list[torch.Tensor] = list(self.model.parameters())
+        for m in self.aux.values():
+            m.to(self.device)
+            self.params_list += list(m.parameters())
+        self.optimizer = self.build_optimizer(self.params_list)
+        self.optimizer.load_state_dict(opt_state)
+        self.on_gradients: Any = None
+        """Called with the unclipped gradients of every update (tests, meta-training)."""
+
+    # -- hooks of A3CTrainer -------------------------------------------------------------
+    def build_optimizer(self, params: list[torch.Tensor]) -> torch.optim.Optimizer:
+        cfg = self.cfg
+        return torch.optim.Adam(params, lr=cfg.lr, betas=cfg.adam_betas, eps=cfg.adam_eps,
+                                amsgrad=cfg.amsgrad, fused=cfg.fused or None)
+
+    def resolved_config(self) -> dict[str, Any]:
+        d = super().resolved_config()
+        d["engine"] = {"name": self.engine, "batch": self.batch, "device": str(self.device),
+                       "torch_threads": self.cfg.torch_threads,
+                       "workers": "unused (one process)"}
+        d.pop("mp_context", None)
+        return d
+
+    def save(self, path: Any, episodes: int, rng: dict[str, Any] | None = None) -> Any:
+        from geonav.policy.checkpoint import save_checkpoint
+
+        cpu = {k: v.detach().cpu() for k, v in self.model.state_dict().items()}
+        return save_checkpoint(path, cpu, self.checkpoint_meta(episodes),
+                               self.optimizer.state_dict(), rng,
+                               {name: {k: v.detach().cpu() for k, v in m.state_dict().items()}
+                                for name, m in self.aux.items()} or None)
+
+    def evaluate_now(self, cbs: list[Callback], result: TrainResult) -> dict[str, Any]:
+        """The trainer's periodic evaluation (the reference per-step evaluator, at the same
+        episode interval as the async engine, so evaluation e* compare), on a CPU copy."""
+        if self.device.type == "cpu":
+            return super().evaluate_now(cbs, result)
+        import copy
+
+        live = self.model
+        self.model = copy.deepcopy(live).cpu()
+        try:
+            return super().evaluate_now(cbs, result)
+        finally:
+            self.model = live
+
+    def _train_inline(self, cbs: list[Callback], result: TrainResult) -> None:
+        self._train_batched(cbs, result)
+
+    def _train_workers(self, cbs: list[Callback], result: TrainResult) -> None:
+        self._train_batched(cbs, result)
+
+    # -- state of the engine --------------------------------------------------------------
+    def params(self) -> Params:
+        return dict(self.model.named_parameters())
+
+    def make_venv(self) -> LatticeVecEnv:
+        return LatticeVecEnv(self.env, self.batch)
+
+    def _setup(self) -> None:
+        self.venv = self.make_venv()
+        self.rng = np.random.default_rng(self.cfg.seed + 7919 * self.start_episode)
+        self.venv.seed(self.cfg.seed + 7919 * self.start_episode)
+        st = self.rng_state
+        if st is not None and st.get("engine") == "batched":
+            torch.set_rng_state(st["torch"])
+            self.rng.bit_generator.state = st["numpy"]
+            self.venv.np_random.bit_generator.state = st["env"]
+        self.venv.reset()
+        dtype = next(self.model.parameters()).dtype
+        self.prev_table = None
+        if self.prev_view_spec is not None:
+            if self.frozen is None or not self.net_cfg.prev_view_input:
+                raise ConfigError("the previous-altitude view input on the batched engine "
+                                  "needs a frozen encoder and a network with the extra slot")
+            # the same lattice at the previous altitude: the same view indices
+            prev_env = LatticeVecEnv(self.prev_view_spec.env_factory(), 1)
+            self.prev_table = prev_env.feature_table(self.frozen).to(self.device, dtype)
+        if self.frozen is not None:
+            self.table = self.venv.feature_table(self.frozen).to(self.device, dtype)
+            self.images = None
+        else:
+            self.table = None
+            self.images = torch.from_numpy(self.venv.image_table()).to(self.device)
+        b = self.batch
+        self.state: State = tuple(x.to(self.device, dtype)  # type: ignore[assignment]
+                                  for x in self.model.initial_state(b))
+        self.fresh = torch.ones(b, dtype=torch.bool, device=self.device)
+        self.t_episode = np.full(b, time.perf_counter())
+        self.slot_episode = self.start_episode + 1 + np.arange(b)
+        """The number of each slot's current episode in start order (schedules by episode,
+        such as the curriculum teacher's lambda, read it)."""
+        self.next_episode = self.start_episode + 1 + b
+
+    def rng_snapshot(self) -> dict[str, Any]:
+        return {"engine": "batched", "torch": torch.get_rng_state(),
+                "numpy": self.rng.bit_generator.state,
+                "env": self.venv.np_random.bit_generator.state}
+
+    def features(self, rows: torch.Tensor) -> torch.Tensor:
+        """(n, F) features of view indices: the frozen table, or the CNN (with graph)."""
+        if self.table is not None:
+            return self.table[rows]
+        assert self.images is not None
+        return self.model.features(self.images[rows])
+
+    def prev_features(self, rows: torch.Tensor) -> torch.Tensor | None:
+        """(n, F) features of the previous-altitude views at view indices, or None (the
+        extra slot, when the network has one, is zero-filled)."""
+        return None if self.prev_table is None else self.prev_table[rows]
+
+    def acting_tables(self) -> ActingTables:
+        return ActingTables(self.params(), self.net_cfg.embed_dim, self.venv.n_views,
+                            self.features,
+                            None if self.prev_table is None else self.prev_table.__getitem__)
+
+    def slot_indices(self) -> tuple[torch.Tensor, torch.Tensor]:
+        v = torch.from_numpy(self.venv.view_index).to(self.device)
+        t = torch.from_numpy(self.venv.target_index).to(self.device)
+        return v, t
+
+    # -- the loop -------------------------------------------------------------------------
+    def _train_batched(self, cbs: list[Callback], result: TrainResult) -> None:
+        threads = torch.get_num_threads()
+        torch.set_num_threads(self.cfg.torch_threads)
+        try:
+            self._setup()
+            go_on = True
+            while go_on and self.episodes_done < self.cfg.episodes:
+                finals, stats = self.update()
+                left = self.cfg.episodes - self.episodes_done
+                for f in finals[:left]:
+                    if not self._on_record(self.record(f, stats), cbs, result,
+                                           self.rng_snapshot):
+                        go_on = False
+            self._final_rng = self.rng_snapshot()
+        finally:
+            torch.set_num_threads(threads)
+
+    def record(self, f: dict[str, Any], stats: dict[str, float]) -> dict[str, Any]:
+        """The metrics row of a finished episode (the A3C trainer's columns)."""
+        now = time.perf_counter()
+        s = f["slot"]
+        rec = {"episode": self.episodes_done + 1, "worker": s, "task": f["task"],
+               "task_index": f["task_index"], "return": f["return"], "length": f["length"],
+               "success": f["success"],
+               "spl": spl(f["success"], f["shortest_path"], f["length"]),
+               "collisions": f["collisions"], "shortest_path": f["shortest_path"],
+               "env_steps": f["length"], "wall_s": now - float(f.get("t0", now)), **stats}
+        return rec
+
+    def env_step(self, actions: torch.Tensor) -> StepResult:
+        """Step the vector env, note the finished episodes' start times."""
+        res = self.venv.step(actions.cpu().numpy())
+        now = time.perf_counter()
+        for f in res.final:
+            s = f["slot"]
+            f["t0"] = float(self.t_episode[s])
+            f["started_as"] = int(self.slot_episode[s])
+            self.t_episode[s] = now
+            self.slot_episode[s] = self.next_episode
+            self.next_episode += 1
+        self.fresh = torch.from_numpy(res.done).to(self.device)
+        return res
+
+    def update(self) -> tuple[list[dict[str, Any]], dict[str, float]]:
+        """One rollout and its update(s); (finished episodes, loss figures)."""
+        raise NotImplementedError
+
+    def step_optimizer(self, loss: torch.Tensor) -> None:
+        """Backward, show the gradients, clip, step."""
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.apply_gradients()
+
+    def apply_gradients(self) -> None:
+        for p in self.params_list:  # unused parameters step with a zero gradient, as async
+            if p.grad is None:
+                p.grad = torch.zeros_like(p)
+        if self.on_gradients is not None:
+            self.on_gradients([p.grad for p in self.params_list])
+        if self.cfg.max_grad_norm:
+            nn.utils.clip_grad_norm_(self.params_list, self.cfg.max_grad_norm)
+        self.optimizer.step()
+
+    # -- rollouts (A3C and PPO) -------------------------------------------------------------
+    def collect(self, t_max: int, keep_policy: bool = False) -> tuple[RolloutBatch,
+                                                                     list[dict[str, Any]]]:
+        """Act ``t_max`` steps in every slot without autograd."""
+        params, e = self.params(), self.net_cfg.embed_dim
+        boot_trunc = self.cfg.loss.bootstrap_on_truncation
+        finals: list[dict[str, Any]] = []
+        with torch.no_grad():
+            tables = self.acting_tables()
+            start_state = reset_state(self.state, self.fresh)
+            state = start_state
+            vis, tis, acts, starts, lps, vals = [], [], [], [], [], []
+            rewards = np.zeros((t_max, self.batch))
+            ends = np.zeros((t_max, self.batch), bool)
+            end_values = np.zeros((t_max, self.batch)) if boot_trunc else None
+            for t in range(t_max):
+                vi, ti = self.slot_indices()
+                starts.append(self.fresh)
+                state = reset_state(state, self.fresh)
+                logits, value, state = core_step(params, e, state, pre=tables.pre(vi, ti))
+                a = sample_actions(logits, self.rng).to(self.device)
+                if keep_policy:
+                    lps.append(torch.log_softmax(logits, -1).gather(1, a[:, None])[:, 0])
+                    vals.append(value)
+                res = self.env_step(a)
+                if end_values is not None and res.truncated.any():
+                    fv = torch.from_numpy(res.final_view).to(self.device)
+                    _, v_end, _ = core_step(params, e, state, pre=tables.pre(fv, ti))
+                    end_values[t] = np.where(res.truncated, v_end.cpu().numpy(), 0.0)
+                vis.append(vi)
+                tis.append(ti)
+                acts.append(a)
+                rewards[t] = res.rewards
+                ends[t] = res.done
+                finals += res.final
+            vi, ti = self.slot_indices()
+            _, v_next, _ = core_step(params, e, state, pre=tables.pre(vi, ti))
+            bootstrap = np.where(ends[-1], 0.0, v_next.to("cpu", torch.float64).numpy())
+        self.state = state
+        batch = RolloutBatch(start_state, torch.stack(vis), torch.stack(tis), torch.stack(acts),
+                             rewards, ends, torch.stack(starts), bootstrap, end_values,
+                             torch.stack(lps) if keep_policy else None,
+                             torch.stack(vals) if keep_policy else None)
+        return batch, finals
+
+    def recompute(self, ro: RolloutBatch, slots: torch.Tensor | None = None
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+        """logits (T, B', A) and values (T, B') of a rollout with the graph, each distinct
+        view's image part evaluated once (``slots``: a subset of the slots)."""
+        view_idx, target_idx, starts = ro.view_idx, ro.target_idx, ro.starts
+        state = ro.start_state
+        if slots is not None:
+            view_idx, target_idx, starts = view_idx[:, slots], target_idx[:, slots], \
+                starts[:, slots]
+            state = (state[0][slots], state[1][slots], state[2][slots])
+        uniq, inv = torch.unique(torch.cat([view_idx.flatten(), target_idx.flatten()]),
+                                 return_inverse=True)
+        n = view_idx.numel()
+        table = self.features(uniq)
+        logits, values, _ = sequence_forward(
+            self.params(), self.net_cfg.embed_dim, table, inv[:n].view_as(view_idx),
+            inv[n:].view_as(target_idx), state, starts, self.prev_features(uniq))
+        return logits, values
+
+    def advantages(self, ro: RolloutBatch, values: torch.Tensor
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Masked GAE of a rollout: (returns, advantages), (T, B) in the values' dtype."""
+        lc = self.cfg.loss
+        v = values.detach().to("cpu", torch.float64).numpy()
+        ret, adv = gae_returns(ro.rewards, v, ro.bootstrap, ro.ends, lc.gamma, lc.tau,
+                               ro.end_values)
+        return (torch.from_numpy(ret).to(self.device, values.dtype),
+                torch.from_numpy(adv).to(self.device, values.dtype))
+
+
+def loss_stats(terms: LossTerms, steps: int) -> dict[str, float]:
+    """The loss columns of the metrics rows from an update's terms (per-slot averages)."""
+    return {"policy_loss": float(terms.policy.detach()), "value_loss": float(terms.value.detach()),
+            "entropy": float(terms.entropy.detach()) / max(steps, 1)}
+
+
+class BatchedA3CTrainer(BatchedTrainer):
+    """Synchronous batched A3C (see the module docstring)."""
+
+    algorithm = "a3c"
+    config_key = "a3c"
+
+    def a3c_loss(self, ro: RolloutBatch) -> LossTerms:
+        """L_AC of a rollout averaged over the slots (graph kept)."""
+        logits, values = self.recompute(ro)
+        returns, advantages = self.advantages(ro, values)
+        terms = policy_value_terms(logits, values, ro.actions, returns, advantages,
+                                   self.cfg.loss)
+        b = float(self.batch)
+        return LossTerms(terms.total / b, terms.policy / b, terms.value / b, terms.entropy / b)
+
+    def update(self) -> tuple[list[dict[str, Any]], dict[str, float]]:
+        ro, finals = self.collect(self.cfg.t_max)
+        terms = self.a3c_loss(ro)
+        self.step_optimizer(terms.total)
+        return finals, loss_stats(terms, ro.view_idx.shape[0])
+
+
+__all__ = ["BatchedTrainer", "BatchedA3CTrainer", "RolloutBatch", "resolve_device",
+           "DEFAULT_BATCH"]

@@ -1,0 +1,154 @@
+"""Which trainer runs an algorithm: the batched engine (default) or the async reference.
+
+``engine = "batched"`` (:mod:`geonav.policy.batched`) steps many episodes in lock-step in
+one process; ``engine = "async"`` is the per-episode, multi-process trainer of
+:mod:`geonav.policy.a3c` (with :mod:`~geonav.policy.savn` and :mod:`~geonav.policy.isar`),
+the paper-faithful asynchronous form and the reference the batched learners are tested
+against. Both write the same run folders, checkpoints and metrics.
+
+Where the batched engine does not implement a combination (ISAR or SAVN with the
+trainable CNN; SAVN with the truncation bootstrap; ISAR without the partial-window
+flush), :func:`resolve` falls
+back to the async trainer, logs a warning and says so in the returned reason, which
+the trainers record in config.json.
+PPO exists on the batched engine only.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Any
+
+from geonav.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+ENGINES = ("batched", "async")
+ALGOS = ("a3c", "savn", "isar", "ppo")
+
+
+@dataclass(frozen=True)
+class EngineChoice:
+    """The trainer class chosen for an algorithm, and why."""
+
+    cls: type
+    engine: str
+    """'batched' or 'async' (what actually runs)."""
+    reason: str | None = None
+    """Why the batched engine was not used, when it was asked for."""
+
+
+def _fallback_reason(algo: str, net_cfg: Any, cfg: Any, teacher: bool, prev_view: bool
+                     ) -> str | None:
+    if prev_view and algo not in ("isar", "savn"):
+        return f"the previous-altitude view input is implemented for isar and savn, not {algo}"
+    if algo in ("isar", "savn"):
+        if net_cfg is None or net_cfg.encoder == "cnn":
+            return (f"batched {algo.upper()} needs a frozen encoder (the trainable CNN is "
+                    "not factored)")
+        if cfg is not None and getattr(cfg.loss, "bootstrap_on_truncation", False) and \
+                algo == "savn":
+            return "SAVN's truncation bootstrap is implemented on the async engine only"
+        if cfg is not None and not getattr(cfg, "flush_partial_window", True):
+            return "flush_partial_window = false is implemented on the async engine only"
+    return None
+
+
+def resolve(algo: str, engine: str = "batched", net_cfg: Any = None, cfg: Any = None, *,
+            teacher: bool = False, prev_view: bool = False) -> EngineChoice:
+    """The trainer class for ``algo`` on ``engine`` (see the module docstring).
+
+    ``net_cfg`` None means the trainers' default network (the trainable CNN).
+    """
+    if engine not in ENGINES:
+        raise ConfigError(f"engine must be one of {ENGINES}, not {engine!r}")
+    if algo not in ALGOS:
+        raise ConfigError(f"algo must be one of {ALGOS}, not {algo!r}")
+    if engine == "batched":
+        reason = _fallback_reason(algo, net_cfg, cfg, teacher, prev_view)
+        if reason is None:
+            from geonav.policy.batched.isar import BatchedISARTrainer
+            from geonav.policy.batched.ppo import BatchedPPOTrainer
+            from geonav.policy.batched.savn import BatchedSAVNTrainer
+            from geonav.policy.batched.trainer import BatchedA3CTrainer
+
+            cls = {"a3c": BatchedA3CTrainer, "isar": BatchedISARTrainer,
+                   "savn": BatchedSAVNTrainer, "ppo": BatchedPPOTrainer}[algo]
+            return EngineChoice(cls, "batched")
+        if algo == "ppo":
+            raise ConfigError(f"PPO runs on the batched engine only, and {reason}")
+        log.warning("engine 'batched': %s; running %s on engine 'async'", reason, algo)
+    elif algo == "ppo":
+        raise ConfigError("PPO exists on the batched engine only; use engine = 'batched'")
+    else:
+        reason = None
+    from geonav.policy.a3c import A3CTrainer
+    from geonav.policy.isar import ISARTrainer
+    from geonav.policy.savn import SAVNTrainer
+
+    return EngineChoice({"a3c": A3CTrainer, "isar": ISARTrainer, "savn": SAVNTrainer}[algo],
+                        "async", reason)
+
+
+def build_trainer(algo: str, engine: str, env_factory: Any, net_cfg: Any, cfg: Any, *,
+                  batch: int | None = None, device: str | None = None,
+                  **kwargs: Any) -> Any:
+    """Construct the trainer :func:`resolve` picks; ``batch`` and ``device`` go to the
+    batched engine (the async one runs on the CPU and refuses another device)."""
+    choice = resolve(algo, engine, net_cfg, cfg, teacher=kwargs.get("teacher") is not None,
+                     prev_view=kwargs.get("prev_view") is not None)
+    if choice.engine == "batched":
+        from geonav.policy.batched.trainer import DEFAULT_BATCH
+
+        trainer = choice.cls(env_factory, net_cfg, cfg, batch=batch or DEFAULT_BATCH,
+                             device=device or "cpu", **kwargs)
+    else:
+        if device not in (None, "cpu"):
+            raise ConfigError(f"the async engine runs on the CPU; device {device!r} needs "
+                              "engine = 'batched'")
+        trainer = choice.cls(env_factory, net_cfg, cfg, **kwargs)
+        base = trainer.resolved_config  # the async trainers record the engine through this
+        trainer.resolved_config = lambda: {**base(), "engine": {
+            "name": "async", "asked": engine, "fallback_reason": choice.reason}}
+    trainer.engine_choice = choice
+    return trainer
+
+
+def build_meta_trainer(algo: str, engine: str, env_factory: Any, net_cfg: Any, base_cfg: Any,
+                       meta_cfg: Any, *, batch: int | None = None, device: str | None = None,
+                       **kwargs: Any) -> Any:
+    """Meta-training on the batched engine where it is implemented (SAVN base, E = 1, a
+    frozen encoder), else :class:`~geonav.policy.meta.MetaTrainer` (async, with a warning
+    when the batched engine was asked for). ``batch`` is unused: B is the meta-batch."""
+    if engine not in ENGINES:
+        raise ConfigError(f"engine must be one of {ENGINES}, not {engine!r}")
+    reason = None
+    if engine == "batched":
+        reason = _fallback_reason(algo, net_cfg, base_cfg, False, False)
+        if reason is None and algo != "savn":
+            reason = f"meta-training with the {algo} base is implemented on the async engine"
+        if reason is None and meta_cfg.episodes_per_task != 1:
+            reason = "batched meta-training runs E = 1 episode per task visit"
+        if reason is None:
+            from geonav.policy.batched.meta import BatchedMetaSAVN
+
+            trainer: Any = BatchedMetaSAVN(env_factory, net_cfg, base_cfg, meta_cfg,
+                                           device=device or "cpu", **kwargs)
+            trainer.engine_choice = EngineChoice(BatchedMetaSAVN, "batched")
+            return trainer
+        log.warning("engine 'batched': %s; meta-training on engine 'async'", reason)
+    if device not in (None, "cpu"):
+        raise ConfigError(f"meta-training on the async engine runs on the CPU; device "
+                          f"{device!r} needs the batched engine")
+    from geonav.policy.meta import MetaTrainer
+
+    trainer = MetaTrainer(env_factory, net_cfg, algo, base_cfg, meta_cfg, **kwargs)
+    base = trainer.resolved_config
+    trainer.resolved_config = lambda: {**base(), "engine": {
+        "name": "async", "asked": engine, "fallback_reason": reason}}
+    trainer.engine_choice = EngineChoice(MetaTrainer, "async", reason)
+    return trainer
+
+
+__all__ = ["ENGINES", "EngineChoice", "resolve", "build_trainer", "build_meta_trainer"]

@@ -1,0 +1,251 @@
+"""LatticeVecEnv: B independent GeoNavEnv episodes stepped together by index arithmetic.
+
+The batched training engine (:mod:`geonav.policy.batched`) steps many episodes in
+lock-step. Every observation of a lattice task is one of a few views (cells x
+altitudes), so this environment renders each view once into a table and a step is a
+gather: the current view of slot b is ``view_table[view_index[b]]`` and its target
+``view_table[target_index[b]]``. With a frozen encoder the learner keeps the features of
+the table instead of its pixels (:meth:`LatticeVecEnv.feature_table`).
+
+Semantics are exactly :class:`geonav.env.GeoNavEnv`'s (which stays the Gymnasium face
+and the reference; ``tests/test_vecenv.py`` compares trajectories): the task of a
+new episode is drawn uniformly ("random") or in order ("cycle"), the start uniformly
+among the free cells that reach the target within ``max_steps``; a move into an
+obstacle or out of the region leaves the drone in place and counts as a collision;
++``success_reward`` and terminated on entering the target, else ``step_reward`` (plus
+``collision_reward`` when refused); truncated after ``max_steps`` steps.
+
+Each slot resets on its own, in the same step (auto-reset): :meth:`step` returns the
+rewards and end flags of the step just taken, the finished episodes' summaries in
+:attr:`StepResult.final`, and the slots' views after it (a new episode's start view
+where a slot ended). Random draws come from one ``numpy`` generator per environment
+(``reset(seed=...)``), so a run is reproducible, but the draws are not the same as B
+separate GeoNavEnv instances' (the trajectories are equal for the same starts and
+actions).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from geonav.env import GeoNavEnv
+from geonav.errors import ConfigError, TaskError
+from geonav.tasks import ACTION_MOVES
+
+_MOVES = np.asarray(ACTION_MOVES, np.int64)  # (A, 2): dx, dy
+
+
+@dataclass
+class StepResult:
+    """What :meth:`LatticeVecEnv.step` returns (arrays of shape (B,))."""
+
+    rewards: np.ndarray
+    """float64 rewards of the step."""
+    terminated: np.ndarray
+    """bool: the slot entered its target."""
+    truncated: np.ndarray
+    """bool: the slot hit its step cap without reaching the target."""
+    collided: np.ndarray
+    """bool: the move was refused (obstacle or region edge)."""
+    final_view: np.ndarray
+    """int64 view index where the step left each slot (before any auto-reset)."""
+    final: list[dict[str, Any]]
+    """One summary per finished episode: slot, task, task_index, length, success,
+    shortest_path, return, collisions."""
+
+    @property
+    def done(self) -> np.ndarray:
+        return self.terminated | self.truncated
+
+
+class LatticeVecEnv:
+    """B lock-stepped episodes over the tasks of a :class:`GeoNavEnv` (see module docstring).
+
+    Args:
+        env: the reference environment; its scene, tasks, camera, rewards, caps and task
+            sampling are used (``env.unwrapped``).
+        n_slots: B, the number of parallel episodes.
+        slot_tasks: per slot, a fixed task index for every episode of that slot (None or
+            -1: drawn by the env's ``task_sampling``). Meta-training pins tasks to slots.
+    """
+
+    def __init__(self, env: Any, n_slots: int, *, slot_tasks: Any = None) -> None:
+        u: GeoNavEnv = env.unwrapped
+        if n_slots < 1:
+            raise ConfigError(f"n_slots must be >= 1, got {n_slots}")
+        self.env = u
+        self.n_slots = int(n_slots)
+        self.n_tasks = len(u.task_maps)
+        shapes = [tm.lattice.shape for tm in u.task_maps]
+        sizes = [nx * ny for nx, ny in shapes]
+        self.offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+        """View index of cell (ix, iy) of task i: offsets[i] + ix * ny_i + iy."""
+        self.n_views = int(self.offsets[-1])
+        self.nx = np.asarray([s[0] for s in shapes], np.int64)
+        self.ny = np.asarray([s[1] for s in shapes], np.int64)
+        self.max_steps = np.asarray([u.max_steps_of(i) for i in range(self.n_tasks)], np.int64)
+        self.target = np.asarray([tm.task.target_cell for tm in u.task_maps], np.int64)
+        self.target_view = np.asarray([self.view_of(i, tuple(self.target[i]))
+                                       for i in range(self.n_tasks)], np.int64)
+        self._blocked = [tm.blocked.astype(bool) for tm in u.task_maps]
+        self._dist = [tm.dist_to_target.astype(np.int64) for tm in u.task_maps]
+        self._starts = [np.asarray(u.start_cells(i), np.int64) for i in range(self.n_tasks)]
+        self.view_task = np.repeat(np.arange(self.n_tasks), sizes).astype(np.int64)
+        """Task of every view index."""
+        self.slot_tasks = np.full(self.n_slots, -1, np.int64) if slot_tasks is None else \
+            np.asarray(slot_tasks, np.int64).reshape(self.n_slots)
+        if (self.slot_tasks >= self.n_tasks).any():
+            raise TaskError(f"slot task index out of range 0..{self.n_tasks - 1}")
+        self.np_random = np.random.default_rng()
+        self._cycle = -1
+        b = self.n_slots
+        self.task = np.zeros(b, np.int64)
+        self.cell = np.zeros((b, 2), np.int64)
+        self.start = np.zeros((b, 2), np.int64)
+        self.steps = np.zeros(b, np.int64)
+        self.ep_return = np.zeros(b, np.float64)
+        self.collisions = np.zeros(b, np.int64)
+        self._images: np.ndarray | None = None
+
+    # -- tables -----------------------------------------------------------------------------
+    def view_of(self, task_index: int, cell: tuple[int, int]) -> int:
+        return int(self.offsets[task_index] + cell[0] * self.ny[task_index] + cell[1])
+
+    def view_cells(self) -> list[tuple[int, tuple[int, int]]]:
+        """(task index, cell) of every view index, in index order."""
+        return [(i, (x, y)) for i in range(self.n_tasks)
+                for x in range(int(self.nx[i])) for y in range(int(self.ny[i]))]
+
+    def image_table(self) -> np.ndarray:
+        """(n_views, N, N, 3) uint8: the rendered view of every (task, cell) (built once)."""
+        if self._images is None:
+            n = self.env.camera.size_px
+            out = np.empty((self.n_views, n, n, 3), np.uint8)
+            for v, (ti, cell) in enumerate(self.view_cells()):
+                out[v] = self.env.observation_at(ti, cell)
+            self._images = out
+        return self._images
+
+    def feature_table(self, frozen: Any, chunk: int = 256) -> Any:
+        """(n_views, F) features of every view through a frozen encoder (a torch tensor)."""
+        import torch
+
+        images = self.image_table()
+        parts = [frozen.encode(torch.from_numpy(images[i:i + chunk]))
+                 for i in range(0, self.n_views, chunk)]
+        return torch.cat(parts)
+
+    @property
+    def view_index(self) -> np.ndarray:
+        """(B,) view index of every slot's current cell."""
+        return self.offsets[self.task] + self.cell[:, 0] * self.ny[self.task] + self.cell[:, 1]
+
+    @property
+    def target_index(self) -> np.ndarray:
+        """(B,) view index of every slot's target cell."""
+        return self.target_view[self.task]
+
+    # -- episodes ---------------------------------------------------------------------------
+    def seed(self, seed: int | None) -> None:
+        self.np_random = np.random.default_rng(seed)
+
+    def reset(self, *, seed: int | None = None, tasks: Any = None, starts: Any = None) -> None:
+        """Start a new episode in every slot (``tasks``/``starts`` force them, per slot)."""
+        if seed is not None:
+            self.seed(seed)
+        self.reset_slots(np.arange(self.n_slots), tasks, starts)
+
+    def _draw_task(self, slot: int) -> int:
+        if self.slot_tasks[slot] >= 0:
+            return int(self.slot_tasks[slot])
+        if self.env.task_sampling == "cycle":
+            self._cycle = (self._cycle + 1) % self.n_tasks
+            return self._cycle
+        return int(self.np_random.integers(self.n_tasks))
+
+    def reset_slots(self, slots: Any, tasks: Any = None, starts: Any = None) -> None:
+        """New episodes in ``slots`` (in order): task drawn (or forced), then the start."""
+        for j, s in enumerate(np.asarray(slots, np.int64).tolist()):
+            ti = self._draw_task(s) if tasks is None else int(tasks[j])
+            if not 0 <= ti < self.n_tasks:
+                raise TaskError(f"task index {ti} out of range 0..{self.n_tasks - 1}")
+            if starts is None:
+                cands = self._starts[ti]
+                start = cands[int(self.np_random.integers(len(cands)))]
+            else:
+                start = np.asarray(starts[j], np.int64)
+                if not (0 <= start[0] < self.nx[ti] and 0 <= start[1] < self.ny[ti]) \
+                        or self._blocked[ti][tuple(start)]:
+                    raise TaskError(f"start cell {tuple(start)} is outside the lattice or "
+                                    "blocked")
+                if self._dist[ti][tuple(start)] < 0:
+                    raise TaskError(f"the target is unreachable from start cell "
+                                    f"{tuple(start)}")
+            self.task[s] = ti
+            self.cell[s] = start
+            self.start[s] = start
+            self.steps[s] = 0
+            self.ep_return[s] = 0.0
+            self.collisions[s] = 0
+
+    def step(self, actions: Any, *, autoreset: bool = True) -> StepResult:
+        """Move every slot by its action (B,) and auto-reset the slots that finished."""
+        a = np.asarray(actions, np.int64).reshape(self.n_slots)
+        if ((a < 0) | (a >= len(_MOVES))).any():
+            raise ValueError(f"actions must lie in Discrete({len(_MOVES)}), got {a}")
+        u = self.env
+        nxt = self.cell + _MOVES[a]
+        ti = self.task
+        inside = (nxt[:, 0] >= 0) & (nxt[:, 0] < self.nx[ti]) & (nxt[:, 1] >= 0) \
+            & (nxt[:, 1] < self.ny[ti])
+        collided = ~inside
+        for s in np.nonzero(inside)[0].tolist():
+            collided[s] = bool(self._blocked[ti[s]][nxt[s, 0], nxt[s, 1]])
+        self.cell = np.where(collided[:, None], self.cell, nxt)
+        self.steps += 1
+        terminated = (self.cell == self.target[ti]).all(axis=1)
+        rewards = np.where(terminated, u.success_reward,
+                           u.step_reward + np.where(collided, u.collision_reward, 0.0))
+        truncated = ~terminated & (self.steps >= self.max_steps[ti])
+        self.ep_return += rewards
+        self.collisions += collided
+        final_view = self.view_index
+        done = terminated | truncated
+        final = []
+        for s in np.nonzero(done)[0].tolist():
+            final.append({"slot": s, "task": u.task_maps[ti[s]].task.name,
+                          "task_index": int(ti[s]), "length": int(self.steps[s]),
+                          "success": bool(terminated[s]),
+                          "shortest_path": int(self._dist[ti[s]][tuple(self.start[s])]),
+                          "return": float(self.ep_return[s]),
+                          "collisions": int(self.collisions[s])})
+        if autoreset and done.any():
+            self.reset_slots(np.nonzero(done)[0])
+        return StepResult(rewards.astype(np.float64), terminated, truncated, collided,
+                          final_view, final)
+
+    def info(self, slot: int, collided: bool = False) -> dict[str, Any]:
+        """GeoNavEnv's ``info`` dict for one slot's current state."""
+        tm = self.env.task_maps[int(self.task[slot])]
+        cell = (int(self.cell[slot, 0]), int(self.cell[slot, 1]))
+        p = tm.lattice.center(cell)
+        return {"position_m": (p.x_m, p.y_m), "cell": cell, "target_cell": tm.task.target_cell,
+                "distance_m": int(tm.dist_to_target[cell]) * tm.task.step_m,
+                "shortest_path": int(tm.dist_to_target[tuple(self.start[slot])]),
+                "collided": bool(collided), "success": cell == tm.task.target_cell,
+                "is_success": cell == tm.task.target_cell,
+                "task": tm.task.name, "task_index": int(self.task[slot]),
+                "alt_m": tm.task.alt_m, "steps": int(self.steps[slot])}
+
+    def table_bytes(self, frozen_dim: int | None = None) -> int:
+        """Bytes of the observation table: images, or float32 features of width F."""
+        if frozen_dim is not None:
+            return self.n_views * frozen_dim * 4
+        n = self.env.camera.size_px
+        return self.n_views * n * n * 3
+
+
+__all__ = ["LatticeVecEnv", "StepResult"]

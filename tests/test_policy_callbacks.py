@@ -1,0 +1,122 @@
+"""Learning curves for any run length; TensorBoard under SB3's tag names."""
+
+import cv2
+import numpy as np
+import pytest
+
+from geonav.camera import Camera
+from geonav.env import GeoNavEnv
+from geonav.policy.callbacks import (
+    CSVMetrics,
+    _trailing_mean,
+    curve_window,
+    plot_learning_curve,
+    read_metrics,
+    running_env_steps,
+    tensorboard_callback,
+)
+from geonav.tasks import NavTask, TaskSet
+
+
+def _records(n, *, running_total=True):
+    rng = np.random.default_rng(0)
+    total, out = 0, []
+    for i in range(n):
+        length = int(rng.integers(5, 40))
+        total += length
+        out.append(dict(episode=i + 1, worker=0, task="t", task_index=0,
+                        **{"return": 5.0 - 0.01 * length}, length=length,
+                        success=bool(i % 3), spl=0.5, collisions=0, shortest_path=4,
+                        policy_loss=0.1, value_loss=0.2, entropy=1.3,
+                        env_steps=total if running_total else length))
+    return out
+
+
+def test_window_follows_the_run_size():
+    assert curve_window(50) == 5 and curve_window(12) == 1 and curve_window(30_000) == 500
+    assert curve_window(12, 100) == 12 and curve_window(1000, 100) == 100
+    assert curve_window(0) == 1
+    # every episode gets a point, the head averaging what there is so far
+    np.testing.assert_allclose(_trailing_mean(np.array([1.0, 0.0, 1.0, 1.0]), 2),
+                               [1.0, 0.5, 0.5, 1.0])
+
+
+def test_env_steps_axis_running_total_or_summed(tmp_path):
+    rows = _records(6)
+    np.testing.assert_array_equal(running_env_steps(rows), np.cumsum([r["length"] for r in rows]))
+    resumed = [dict(r, env_steps=r["env_steps"] + 1000) for r in rows]  # after a resume
+    assert running_env_steps(resumed)[-1] == rows[-1]["env_steps"] + 1000
+    per_episode = _records(6, running_total=False)  # a column that repeats the length
+    np.testing.assert_array_equal(running_env_steps(per_episode),
+                                  np.cumsum([r["length"] for r in per_episode]))
+
+
+@pytest.mark.parametrize("n", [3, 40])
+def test_learning_curve_png_for_short_runs(tmp_path, n):
+    m = CSVMetrics(tmp_path / "metrics.csv")
+    for r in _records(n):
+        m.on_episode(r)
+    m.close()
+    assert len(read_metrics(tmp_path / "metrics.csv")) == n
+    out = plot_learning_curve(tmp_path / "metrics.csv", tmp_path / "curve.png")
+    img = cv2.imread(str(out))
+    assert img is not None and img.shape == (540, 700, 3)
+    assert not list(tmp_path.glob(".*.tmp.png"))
+
+
+def _scalars(log_dir):
+    ea_mod = pytest.importorskip("tensorboard.backend.event_processing.event_accumulator")
+    ea = ea_mod.EventAccumulator(str(log_dir))
+    ea.Reload()
+    return {tag: [(e.step, e.value) for e in ea.Scalars(tag)] for tag in ea.Tags()["scalars"]}
+
+
+def test_tensorboard_sb3_tags_against_env_steps(tmp_path):
+    pytest.importorskip("tensorboard", reason="needs the tensorboard extra: "
+                        "pip install 'geonav[tensorboard]'")
+    tb = tensorboard_callback(tmp_path / "tb", required=True)
+    records = _records(5)
+    for r in records:
+        tb.on_episode(r)
+    tb.on_eval(dict(episode=5, env_steps=records[-1]["env_steps"], starts=8, greedy_sr=0.75,
+                    greedy_spl=0.6, sampled_sr=0.5, sampled_spl=float("nan")))
+    tb.on_train_end(None)
+    s = _scalars(tmp_path / "tb")
+    steps = [r["env_steps"] for r in records]
+    assert [x for x, _ in s["rollout/ep_len_mean"]] == steps  # x = cumulative env steps
+    assert s["rollout/success_rate"][-1][1] == pytest.approx(np.mean([r["success"]
+                                                                      for r in records]))
+    assert s["rollout/ep_rew_mean"][0][1] == pytest.approx(records[0]["return"])
+    assert s["train/entropy_loss"][0][1] == pytest.approx(-1.3)  # SB3: minus the entropy
+    assert s["eval/success_rate"] == [(steps[-1], 0.75)]
+    assert s["eval/sampled_success_rate"] == [(steps[-1], 0.5)]
+    assert "eval/sampled_spl" not in s  # NaN is not plotted
+    assert {"train/policy_loss", "train/value_loss", "eval/spl", "time/episodes"} <= set(s)
+    assert not [t for t in s if t.startswith("episode/")]
+
+
+def test_tensorboard_tags_are_the_ones_sb3_writes(scene, tmp_path):
+    """The tags shared with SB3's A2C (the closest SB3 algorithm to A3C) are spelled alike."""
+    pytest.importorskip("tensorboard", reason="needs the tensorboard extra")
+    pytest.importorskip("stable_baselines3", reason="needs the sb3 extra")
+    import torch
+    from stable_baselines3 import A2C
+
+    torch.set_num_threads(1)
+    task = NavTask("small", "meta", (-22.5, -22.5, 22.5, 22.5), 15.0, 75.0, (2, 2), 12)
+    env = GeoNavEnv(scene, TaskSet(scene.name, scene.scene_id, [task], camera=Camera(48)))
+    model = A2C("MultiInputPolicy", env, seed=0, device="cpu", n_steps=8,
+                policy_kwargs=dict(net_arch=[16]), tensorboard_log=str(tmp_path / "sb3"))
+    model.learn(total_timesteps=160, log_interval=5)
+    sb3_tags = set()
+    for run in (tmp_path / "sb3").iterdir():
+        sb3_tags |= set(_scalars(run))
+    tb = tensorboard_callback(tmp_path / "geonav", required=True)
+    for r in _records(3):
+        tb.on_episode(r)
+    tb.on_train_end(None)
+    ours = set(_scalars(tmp_path / "geonav"))
+    shared = {"rollout/ep_rew_mean", "rollout/ep_len_mean", "rollout/success_rate",
+              "train/policy_loss", "train/value_loss", "train/entropy_loss"}
+    assert shared <= sb3_tags and shared <= ours
+
