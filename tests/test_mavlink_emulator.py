@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import ctypes
+import socket
+import threading
 import time
 
 import pytest
 
-from geonav.errors import CheckpointError
+from geonav.errors import CheckpointError, FlightError
 from geonav.mavlink_bridge import modes as M
 from geonav.mavlink_bridge.emulator import Emulator, EmulatorConfig
 from geonav.mavlink_bridge.vehicle import open_vehicle
@@ -118,3 +121,68 @@ def test_cli_registers_fly_and_emulator() -> None:
         ["emulator", "--autopilot", "ardupilot", "--listen", "udp:127.0.0.1:0", "--seconds", "0.3"]
     )
     assert a.handler(a) == 0
+
+
+def _emulator_threads() -> list[threading.Thread]:
+    return [t for t in threading.enumerate() if t.name == "mavlink-emulator" and t.is_alive()]
+
+
+def test_start_is_idempotent_one_thread_at_the_configured_rate() -> None:
+    before = len(_emulator_threads())
+    emu = Emulator(EmulatorConfig(time_scale=6.0)).start()
+    with emu:  # a second start (the old tests did this) must not start a second thread
+        emu.start()
+        assert len(_emulator_threads()) == before + 1
+        with emu._lock:
+            t0, w0 = emu.t_s, time.monotonic()
+        time.sleep(0.5)
+        with emu._lock:
+            t1, w1 = emu.t_s, time.monotonic()
+        # Two threads sharing one vehicle ran the emulated clock at twice the rate.
+        assert t1 - t0 <= 6.0 * (w1 - w0) * 1.05 + 0.2
+        assert t1 - t0 > 0
+    assert not emu.running and len(_emulator_threads()) == before  # stop() joined it
+    emu.stop()  # twice is fine
+    with pytest.raises(FlightError, match="stopped"):
+        emu.start()
+
+
+def test_a_frozen_process_pauses_the_emulated_vehicle() -> None:
+    # libc usleep through ctypes.PyDLL keeps the GIL: every Python thread of the process
+    # stands still for 1 s, as in a long garbage-collector pause.
+    freeze = ctypes.PyDLL(None).usleep
+    cfg = EmulatorConfig(time_scale=6.0)
+    with Emulator(cfg) as emu:
+        time.sleep(0.2)
+        with emu._lock:
+            n0 = emu.iterations
+        freeze(1_000_000)
+        deadline = time.monotonic() + 5.0
+        while emu.iterations < n0 + 3 and time.monotonic() < deadline:
+            time.sleep(0.001)
+        with emu._lock:
+            log = list(emu.steps_log)[-(emu.iterations - n0) :]
+    gap_s, dt_s = max(log)  # the iteration that spanned the freeze
+    assert gap_s >= 0.9, log[:5]
+    # Emulated time of that iteration is bounded (0.12 s at 6x), not 6 s.
+    assert dt_s < 1.5
+    assert dt_s <= max(cfg.max_dt_s, 2 * 0.01 * cfg.time_scale) + 1e-9
+
+
+def test_connect_retries_until_a_late_tcp_autopilot_listens() -> None:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    cfg = EmulatorConfig(autopilot="ardupilot", listen=f"tcp:127.0.0.1:{port}", boot_s=0.1)
+    started: list[Emulator] = []
+    timer = threading.Timer(1.0, lambda: started.append(Emulator(cfg).start()))
+    timer.start()
+    v = open_vehicle(f"tcp:127.0.0.1:{port}", "pymavlink")
+    try:
+        v.connect(10.0)  # "Connection refused" for the first second: retried
+        assert v.autopilot == "ardupilot"
+    finally:
+        v.close()
+        timer.join()
+        for emu in started:
+            emu.stop()

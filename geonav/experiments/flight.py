@@ -59,20 +59,23 @@ def fly_result(cfg: ExperimentConfig, root: Path, progress: Any = None) -> dict[
     sample = bool(fl.get("sample", True))
     policy = PolicyRunner.from_checkpoint(result["checkpoint"], greedy=not sample,
                                           seed=int(fl.get("start_seed", 0)))
+    # The task gives region, step, altitude, target, step budget and obstacle model; SIGINT,
+    # SIGTERM and SIGHUP during the flight land the emulated vehicle and write the record.
     flight = fly(
-        policy, scene, target_cell=task.target_cell, start_cell=start,
+        policy, scene, task=task, start_cell=start,
         dry_run=True, autopilot=fl.get("autopilot", "px4"),
         backend=fl.get("backend", "pymavlink"), out_dir=out, progress=progress,
-        region_m=task.region_m, step_m=task.step_m, alt_m=task.alt_m,
-        max_steps=task.max_steps, max_alt_m=max(120.0, task.alt_m + 20.0),
+        max_alt_m=max(120.0, task.alt_m + 20.0),
     )
     summary = dict(stage=stage, seed=seed, task=task.name, alt_m=task.alt_m,
                    actions="sampled" if sample else "greedy",
                    start_cell=list(start), target_cell=list(task.target_cell),
                    shortest_path=int(tm.dist_to_target[start]), success=flight.success,
+                   outcome=flight.outcome, exit_code=flight.exit_code,
                    reason=flight.reason, steps=flight.steps,
                    final_cell=None if flight.final_cell is None else list(flight.final_cell),
-                   end_action=flight.end_action, disarmed=flight.disarmed,
+                   end_action=flight.end_action, end_ok=flight.end_ok,
+                   disarmed=flight.disarmed,
                    record=str(flight.record_path),
                    track_png=None if flight.png_path is None else str(flight.png_path),
                    latency_ms_p50=float(np.median(flight.latencies_ms))
@@ -95,4 +98,11 @@ def fly_result(cfg: ExperimentConfig, root: Path, progress: Any = None) -> dict[
             f"`flight/{Path(summary['record']).name}`.\n"
             + (f"\n![flight track]({rel})\n" if rel else ""))
         report.write_text(text)
+    if flight.outcome == "interrupted" and flight.signal_name:
+        # The vehicle has landed and the record is written; now stop the experiment too.
+        import signal
+
+        from geonav.mavlink_bridge.flight import FlightInterrupted
+
+        raise FlightInterrupted(int(signal.Signals[flight.signal_name]))
     return summary

@@ -2,7 +2,8 @@
 
 Import the submodules you need; nothing heavy is imported here:
 ``vehicle`` (the Vehicle protocol and connection strings), ``pymavlink_backend``,
-``mavsdk_backend``, ``conversion``, ``safety``, ``pump``, ``sequence``,
+``mavsdk_backend``, ``conversion``, ``frames`` (each autopilot's lon/lat <-> NED
+formula), ``safety``, ``pump``, ``sequence``,
 ``flight`` (the loop and :func:`geonav.mavlink_bridge.flight.fly`), ``emulator``
 (a MAVLink vehicle emulator for tests and dry runs) and ``cli``.
 """

@@ -2,11 +2,16 @@
 
 Thin: parses arguments, calls :func:`geonav.mavlink_bridge.flight.fly` or the
 emulator, and prints a one-line result (the CLI is the only place that prints).
+``geonav fly`` exits with the flight's outcome code: 0 reached, 1 missed, 2 bad
+input, 3 refused before arming, 4 link lost, 5 operator took over, 6 safety
+stop, 128 + N when signal N (SIGINT 130, SIGHUP 129, SIGTERM 143) ended it.
 """
 
 from __future__ import annotations
 
 import argparse
+import signal
+import sys
 import threading
 from typing import Any
 
@@ -45,7 +50,29 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument("--backend", choices=("pymavlink", "mavsdk"), default="pymavlink")
     p.add_argument("--camera", default="synthetic", help="synthetic, opencv:0 or rtsp://...")
     p.add_argument("--start", type=_cell, help="start cell IX,IY (default: under take-off)")
-    p.add_argument("--target", type=_cell, required=True, help="target cell IX,IY")
+    p.add_argument(
+        "--target",
+        type=_cell,
+        help="target cell IX,IY: over the scene bounds, or in the --task lattice "
+        "(a task file's target_cell as is)",
+    )
+    p.add_argument(
+        "--task",
+        help="task file FILE[:NAME] (geonav tasks): region, step, altitude, target, "
+        "step budget and obstacle model",
+    )
+    p.add_argument(
+        "--alt",
+        type=positive_float,
+        help="flight altitude above take-off, m (default: the policy's; required for a "
+        "policy trained at several altitudes)",
+    )
+    p.add_argument(
+        "--max-alt",
+        type=positive_float,
+        default=120.0,
+        help="altitude ceiling, m; a higher --alt/policy altitude is clamped with a warning",
+    )
     p.add_argument("--end", choices=("land", "rtl"), default="land")
     p.add_argument("--dry-run", action="store_true", help="fly against an in-process emulator")
     p.add_argument(
@@ -54,15 +81,39 @@ def add_parser(subparsers: Any) -> None:
         default="px4",
         help="emulator flavour for --dry-run",
     )
-    p.add_argument("--max-steps", type=positive_int, default=70)
+    p.add_argument(
+        "--max-steps", type=positive_int, help="step budget (default: the task's, or 70)"
+    )
     p.add_argument(
         "--max-distance",
         type=positive_float,
         default=float("inf"),
         help="geofence radius around home, metres",
     )
-    p.add_argument("--fence-margin", type=nonneg_float, default=0.0,
-                   help="shrink scene bounds, metres")
+    p.add_argument(
+        "--fence-margin",
+        type=nonneg_float,
+        help="setpoints stay this far inside the scene, m (default: one lattice step); "
+        "the vehicle may overshoot half of it before the flight ends",
+    )
+    p.add_argument(
+        "--on-obstacle",
+        choices=("stay", "end"),
+        default="stay",
+        help="a move into a DSM obstacle cell: refuse and keep position (as the env), or end",
+    )
+    p.add_argument(
+        "--takeover-airborne",
+        action="store_true",
+        help="accept a vehicle that is already armed and flying (its position and "
+        "altitude are the start); without it geonav refuses such a vehicle",
+    )
+    p.add_argument(
+        "--connect-timeout",
+        type=positive_float,
+        default=30.0,
+        help="seconds to wait for the autopilot (TCP/serial connects are retried)",
+    )
     p.add_argument(
         "--set-origin",
         action="store_true",
@@ -95,11 +146,14 @@ def _emulator_args(e: argparse.ArgumentParser) -> None:
 
 
 def run_fly(args: argparse.Namespace) -> int:
-    """Handler of ``geonav fly``."""
+    """Handler of ``geonav fly``: one result line, exit code of the outcome."""
     from geonav.mavlink_bridge.flight import fly
+    from geonav.mavlink_bridge.sequence import Timeouts
 
     if not args.dry_run and not args.connect:
         raise ConfigError("give --connect URL, or --dry-run to fly against the emulator")
+    if args.target is None and args.task is None:
+        raise ConfigError("give --target IX,IY or --task FILE[:NAME]")
     try:
         from geonav.cliutil import progress_bar
 
@@ -110,6 +164,7 @@ def run_fly(args: argparse.Namespace) -> int:
         args.checkpoint,
         args.scene,
         target_cell=args.target,
+        task=args.task,
         connect=args.connect,
         backend=args.backend,
         camera=args.camera,
@@ -123,13 +178,16 @@ def run_fly(args: argparse.Namespace) -> int:
         max_distance_m=args.max_distance,
         fence_margin_m=args.fence_margin,
         set_origin=args.set_origin,
+        alt_m=args.alt,
+        max_alt_m=args.max_alt,
+        on_obstacle=args.on_obstacle,
+        takeover_airborne=args.takeover_airborne,
+        timeouts=Timeouts(connect_s=args.connect_timeout),
     )
-    status = "reached the target" if result.success else "did not reach the target"
-    print(
-        f"{status}: {result.reason}; {result.steps} steps; end {result.end_action}, "
-        f"disarmed {result.disarmed}; record {result.record_path}; track {result.png_path}"
-    )
-    return 0 if result.success else 1
+    for note in result.notes:
+        print(f"geonav: warning: {note}", file=sys.stderr)
+    print(result.summary())
+    return result.exit_code
 
 
 def run_emulator(args: argparse.Namespace) -> int:
@@ -155,8 +213,18 @@ def run_emulator(args: argparse.Namespace) -> int:
             flush=True,
         )
 
+    def on_signal(signum: int, frame: Any) -> None:
+        stop.set()
+
+    old = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGTERM, signal.SIGHUP):
+            old[sig] = signal.signal(sig, on_signal)
     try:
         run_standalone(cfg, stop, ready)
     except KeyboardInterrupt:
         stop.set()
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
     return 0

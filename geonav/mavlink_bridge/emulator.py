@@ -29,11 +29,19 @@ documented by PX4 and ArduPilot and observed on ArduCopter SITL
 
 Every delay is in emulated seconds and ``time_scale`` runs emulated time
 faster than the wall clock, so tests can fly whole missions in seconds.
-Everything the emulator receives is recorded for assertions.
+One thread per emulator (``start()`` is idempotent, ``stop()`` joins it)
+polls a non-blocking socket every 10 ms and advances emulated time by the
+wall time since the last iteration, but by at most ``max_dt_s``: a frozen
+process (a garbage-collector pause, a loaded machine) pauses the vehicle, as
+lockstep SITL does, instead of integrating the whole gap as one jump that
+fires failsafe timers at once. The local NED frame is the autopilot's own
+(:mod:`geonav.mavlink_bridge.frames`). Everything the emulator receives is
+recorded for assertions.
 """
 
 from __future__ import annotations
 
+import collections
 import logging
 import math
 import select
@@ -44,12 +52,12 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from pyproj import CRS, Transformer
 
 from geonav.errors import FlightError
 from geonav.geo import LonLat
 from geonav.mavlink_bridge import modes as M
 from geonav.mavlink_bridge._mav import mavlink2
+from geonav.mavlink_bridge.frames import LocalFrame, local_frame
 
 log = logging.getLogger(__name__)
 
@@ -89,6 +97,11 @@ class EmulatorConfig:
         land_speed_mps: descent speed in LAND/RTL.
         rtl_alt_m: RTL return altitude above home (ArduPilot RTL_ALT).
         position_rate_hz: default rate of position messages (PX4 flavour).
+        max_dt_s: most emulated seconds one loop iteration may advance (at
+            least two 10 ms ticks at ``time_scale``), so a process freeze
+            pauses the vehicle instead of jumping it.
+        airborne_alt_m: start already armed and hovering this high above
+            home in the hold mode (a vehicle someone else is flying); 0: on the ground.
     """
 
     autopilot: str = M.PX4
@@ -113,6 +126,8 @@ class EmulatorConfig:
     land_speed_mps: float = 1.5
     rtl_alt_m: float = 15.0
     position_rate_hz: float = 10.0
+    max_dt_s: float = 0.1
+    airborne_alt_m: float = 0.0
 
     def __post_init__(self) -> None:
         if self.autopilot not in (M.PX4, M.ARDUPILOT):
@@ -144,6 +159,7 @@ class ReceivedCommand:
     command: int
     params: tuple[float, ...]
     result: int
+    source: tuple[int, int] = (0, 0)
 
 
 class _Peer:
@@ -179,6 +195,9 @@ class Emulator:
         self.events: list[tuple[float, str]] = []
         self.track: list[tuple[float, float, float, float]] = []
         self.peer_heartbeats = 0
+        #: loop iterations run, and (wall gap s, emulated dt s) of the last ones.
+        self.iterations = 0
+        self.steps_log: collections.deque[tuple[float, float]] = collections.deque(maxlen=2000)
         # Vehicle state.
         self.t_s = 0.0
         self.pos = np.zeros(3)
@@ -187,7 +206,7 @@ class Emulator:
         self.armed = False
         self.landed = True
         self.mode = "posctl" if self.flavour == M.PX4 else "stabilize"
-        self._boot_mode = self.mode
+        self._boot_mode: str | None = self.mode
         self.origin: LonLat | None = None
         self.home = self.cfg.home
         self._armed_at: float | None = None
@@ -204,8 +223,12 @@ class Emulator:
         self._gps_lost = False
         self._param_overrides: dict[str, float] = {}
         self._pending_reply: str | None = None
+        self._frame: LocalFrame | None = None
+        self._closed = False
         self._setup_streams()
         self._open_transport()
+        if self.cfg.airborne_alt_m > 0:
+            self._start_airborne(self.cfg.airborne_alt_m)
 
     # ------------------------------------------------------------------ setup
     def _setup_streams(self) -> None:
@@ -235,10 +258,12 @@ class Emulator:
         if kind == "udp":
             self._udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
             self._udp.bind((host, port))
+            self._udp.setblocking(False)
             self.port = self._udp.getsockname()[1]
         elif kind == "udpout":
             self._udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
             self._udp.bind(("127.0.0.1", 0))
+            self._udp.setblocking(False)
             self._udpout_addr = (host, port)
             self._peers[self._udpout_addr] = _Peer(self._udpout_addr)
             self.port = port
@@ -272,17 +297,34 @@ class Emulator:
 
     # -------------------------------------------------------------- lifecycle
     def start(self) -> Emulator:
-        """Start the emulator thread; returns self."""
-        self._thread = threading.Thread(target=self._run, name="mavlink-emulator", daemon=True)
-        self._thread.start()
+        """Start the emulator thread (once: a second call does nothing); returns self."""
+        with self._lock:
+            if self._closed:
+                raise FlightError("emulator was stopped; make a new one")
+            if self._thread is None:
+                self._thread = threading.Thread(
+                    target=self._run, name="mavlink-emulator", daemon=True
+                )
+                self._thread.start()
         return self
 
+    @property
+    def running(self) -> bool:
+        """Whether the emulator thread is alive."""
+        return self._thread is not None and self._thread.is_alive()
+
     def stop(self) -> None:
-        """Stop the thread and close the sockets."""
+        """Stop the thread, wait for it, and close the sockets (safe to call twice)."""
         self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
-        for sock in [self._udp, self._tcp_listen] + [p.sock for p in self._peers.values()]:
+        thread = self._thread
+        if thread is not None and thread is not threading.current_thread():
+            thread.join()
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            socks = [self._udp, self._tcp_listen] + [p.sock for p in self._peers.values()]
+        for sock in socks:
             if sock is not None:
                 sock.close()
 
@@ -315,9 +357,27 @@ class Emulator:
                 self._set_mode("land", why="failsafe: no position")
 
     def operator_mode(self, name: str) -> None:
-        """Change the mode as an RC pilot or another GCS would."""
+        """Change the mode as an RC pilot would (``hold`` is LOITER on ArduPilot)."""
         with self._lock:
-            self._set_mode(name, why="operator")
+            number = M.custom_mode_value(self.flavour, name)
+            self._set_mode(M.decode_mode(self.flavour, number), why="operator")
+
+    def push(self, north_m: float, east_m: float) -> None:
+        """A gust blows the vehicle this far at once (fence-overshoot tests)."""
+        with self._lock:
+            self.pos[0] += north_m
+            self.pos[1] += east_m
+            self._event(f"fault: gust moved the vehicle {north_m:+.1f} m N {east_m:+.1f} m E")
+
+    def _start_airborne(self, alt_m: float) -> None:
+        self.armed = True
+        self.landed = False
+        self._took_off = True
+        self._armed_at = 0.0
+        self.pos = np.array([0.0, 0.0, -alt_m])
+        self.mode = M.decode_mode(self.flavour, M.custom_mode_value(self.flavour, "hold"))
+        self._boot_mode = None
+        self.target = self.pos.copy()
 
     # ------------------------------------------------------------ record views
     def used_setpoints(self) -> list[ReceivedSetpoint]:
@@ -337,16 +397,25 @@ class Emulator:
 
     # -------------------------------------------------------------- main loop
     def _run(self) -> None:
+        # Emulated time per iteration is bounded: a frozen process pauses the vehicle.
+        max_dt = max(self.cfg.max_dt_s, 2.0 * _TICK_WALL_S * self.cfg.time_scale)
         last = time.monotonic()
         while not self._stop.is_set():
-            self._poll_io(_TICK_WALL_S)
-            now = time.monotonic()
-            dt = (now - last) * self.cfg.time_scale
-            last = now
-            with self._lock:
-                self.t_s += dt
-                self._step(dt)
-                self._send_due()
+            try:
+                self._poll_io(_TICK_WALL_S)
+                now = time.monotonic()
+                gap = now - last
+                dt = min(gap * self.cfg.time_scale, max_dt)
+                last = now
+                with self._lock:
+                    self.t_s += dt
+                    self._step(dt)
+                    self._send_due()
+                    self.iterations += 1
+                    self.steps_log.append((gap, dt))
+            except Exception:  # the emulated vehicle must not die of one bad iteration
+                log.exception("emulator iteration failed")
+                time.sleep(_TICK_WALL_S)
 
     def _link_up(self) -> bool:
         return time.monotonic() >= self._link_down_until
@@ -367,36 +436,50 @@ class Emulator:
                 conn.setblocking(False)
                 self._peers[addr] = _Peer(addr, conn)
                 continue
+            if sock is self._udp:
+                # Drain every datagram that is ready (non-blocking socket).
+                while True:
+                    try:
+                        data, addr = sock.recvfrom(65535)
+                    except (BlockingIOError, InterruptedError):
+                        break
+                    except OSError:
+                        break
+                    self._received(data, addr)
+                continue
+            addr = next((a for a, p in self._peers.items() if p.sock is sock), None)
+            if addr is None:
+                continue
             try:
-                if sock is self._udp:
-                    data, addr = sock.recvfrom(65535)
-                else:
-                    addr = next(a for a, p in self._peers.items() if p.sock is sock)
-                    data = sock.recv(65535)
-                    if not data:
-                        self._drop_peer(addr)
-                        continue
-            except (BlockingIOError, StopIteration):
+                data = sock.recv(65535)
+            except (BlockingIOError, InterruptedError):
                 continue
             except OSError:
+                self._drop_peer(addr)
                 continue
-            if not self._link_up():
+            if not data:
+                self._drop_peer(addr)
                 continue
-            peer = self._peers.get(addr)
-            if peer is None:
-                peer = self._peers[addr] = _Peer(addr)
-            try:
-                msgs = peer.parser.parse_buffer(data) or []
-            except mavlink2.MAVError as err:
-                log.debug("emulator: bad packet from %s: %s", addr, err)
-                continue
-            with self._lock:
-                for msg in msgs:
-                    try:
-                        self._handle(msg)
-                    except (ValueError, TypeError, ArithmeticError, KeyError) as err:
-                        # A malformed request must not kill the emulated vehicle.
-                        log.warning("emulator: cannot handle %s: %s", msg.get_type(), err)
+            self._received(data, addr)
+
+    def _received(self, data: bytes, addr: Any) -> None:
+        if not self._link_up():
+            return
+        peer = self._peers.get(addr)
+        if peer is None:
+            peer = self._peers[addr] = _Peer(addr)
+        try:
+            msgs = peer.parser.parse_buffer(data) or []
+        except mavlink2.MAVError as err:
+            log.debug("emulator: bad packet from %s: %s", addr, err)
+            return
+        with self._lock:
+            for msg in msgs:
+                try:
+                    self._handle(msg)
+                except (ValueError, TypeError, ArithmeticError, KeyError) as err:
+                    # A malformed request must not kill the emulated vehicle.
+                    log.warning("emulator: cannot handle %s: %s", msg.get_type(), err)
 
     def _drop_peer(self, addr: Any) -> None:
         peer = self._peers.pop(addr, None)
@@ -440,7 +523,7 @@ class Emulator:
         if name != self.mode:
             self.mode = name
             self._event(f"mode {name}" + (f" ({why})" if why else ""))
-        if name in ("land", "rtl", "hold", "posctl", "stabilize", "brake", "althold"):
+        if name in ("land", "rtl", "hold", "loiter", "posctl", "stabilize", "brake", "althold"):
             # Leaving autonomy: hold (or land) where the vehicle is now.
             self.target = self.pos.copy() if not self.landed else None
             self._rtl_phase = "return" if name == "rtl" else ""
@@ -565,27 +648,22 @@ class Emulator:
     # ------------------------------------------------------------- geography
     def _set_origin(self, origin: LonLat, source: str) -> None:
         self.origin = origin
-        aeqd = CRS.from_proj4(
-            f"+proj=aeqd +lat_0={origin.lat_deg:.10f} +lon_0={origin.lon_deg:.10f} "
-            "+x_0=0 +y_0=0 +datum=WGS84 +units=m +no_defs +type=crs"
-        )
-        wgs = CRS.from_epsg(4326)
-        self._to_geo = Transformer.from_crs(aeqd, wgs, always_xy=True)
-        self._from_geo = Transformer.from_crs(wgs, aeqd, always_xy=True)
+        # The autopilot's own lon/lat <-> NED formula (ArduPilot flat earth, PX4 aeqd).
+        self._frame = local_frame(self.flavour, origin)
         self._event(f"EKF origin set from {source}: {origin}")
         self._send_origin()
         self._send_home()
 
     def _to_ned(self, q: LonLat) -> tuple[float, float]:
-        e, n = self._from_geo.transform(q.lon_deg, q.lat_deg)
-        return float(n), float(e)
+        assert self._frame is not None
+        return self._frame.to_ne(q)
 
     def lonlat_of(self, north_m: float, east_m: float, down_m: float = 0.0) -> LonLat:
-        """WGS 84 position of a point of the local NED frame (needs the origin)."""
-        if self.origin is None:
+        """WGS 84 position of a point of the local NED frame (the autopilot's formula)."""
+        if self.origin is None or self._frame is None:
             raise FlightError("emulator EKF origin not set yet")
-        lon, lat = self._to_geo.transform(east_m, north_m)
-        return LonLat(float(lon), float(lat), self.origin.alt_m - down_m)
+        lon, lat = self._frame.to_lonlat(float(north_m), float(east_m))
+        return LonLat(lon, lat, self.origin.alt_m - float(down_m))
 
     # ------------------------------------------------------------- telemetry
     def _time_boot_ms(self) -> int:
@@ -782,7 +860,15 @@ class Emulator:
                     msg.z,
                 )
             result = self._command(msg.command, params)
-            self.commands.append(ReceivedCommand(self.t_s, msg.command, params, result))
+            self.commands.append(
+                ReceivedCommand(
+                    self.t_s,
+                    msg.command,
+                    params,
+                    result,
+                    (msg.get_srcSystem(), msg.get_srcComponent()),
+                )
+            )
             self._send(
                 self._mav.command_ack_encode(
                     msg.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()
@@ -799,7 +885,7 @@ class Emulator:
                     LonLat(msg.longitude / 1e7, msg.latitude / 1e7, msg.altitude / 1000.0),
                     source="SET_GPS_GLOBAL_ORIGIN",
                 )
-                if not self.cfg.gps:
+                if not self.cfg.gps and self.origin is not None:
                     self.home = self.origin
                     self._send_home()
             else:
@@ -985,7 +1071,7 @@ class Emulator:
             name = M.decode_mode(M.ARDUPILOT, custom)
             if name.startswith("ardupilot:"):
                 return M.MAV_RESULT_DENIED
-            if name in ("guided", "hold", "rtl") and self.booted and not self._position_valid():
+            if name in ("guided", "loiter", "rtl") and self.booted and not self._position_valid():
                 self._statustext(4, f"Mode change to {name.upper()} failed: requires position")
                 return M.MAV_RESULT_FAILED
         if not self.booted and self._boot_mode is not None:
@@ -1024,7 +1110,7 @@ class Emulator:
         if self.flavour == M.ARDUPILOT and self.mode not in (
             "guided",
             "stabilize",
-            "hold",
+            "loiter",
             "althold",
             "poshold",
         ):

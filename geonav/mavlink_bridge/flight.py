@@ -6,29 +6,46 @@ a policy through :class:`Policy`: ``reset()``, ``act(image, target) -> int``
 and a ``meta`` dict with ``obs_size_px``, ``alt_m``, ``step_m`` and
 ``fov_deg``.
 
-Sequence (DESIGN.md "Deployment"): connect, heartbeat in STANDBY, telemetry
-requested, EKF origin and position known, home inside the scene fence,
-take-off to the policy's altitude, fly to the start cell, then per step get
-a frame, run the policy, send previous target + one lattice step (through
-lon/lat into the vehicle's NED), wait for arrival (distance AND speed under
-thresholds); stop at the target cell, the step budget or a safety rule; then
-LAND or RTL and wait for disarm, in a ``finally`` (Ctrl-C and any exception
+Sequence (DESIGN.md "Deployment"): the plan (altitude, lattice, obstacles,
+target) is checked before connecting; connect, heartbeat in STANDBY,
+refuse a vehicle that is already armed or airborne (unless
+``takeover_airborne``), telemetry requested, EKF origin and position known,
+home inside the scene fence, take-off to the policy's altitude, fly to the
+start cell, then per step get a frame, run the policy, send previous target
++ one lattice step (through lon/lat into the vehicle's own NED frame), wait
+for arrival (distance AND speed under thresholds) while the measured
+position stays inside the fence; a move into a cell the environment treats
+as an obstacle (``geonav.tasks.blocked_cells``) is refused as in the env
+(the vehicle stays) or ends the flight (``on_obstacle="end"``). Stop at the
+target cell, the step budget or a safety rule; then LAND or RTL and wait
+for disarm, in a ``finally`` (Ctrl-C, SIGTERM, SIGHUP and any exception
 included). An operator takeover ends autonomy without any further command.
+Every flight ends with an :data:`OUTCOMES` word and its exit code.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import signal
+import threading
 import time
-from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
 
-from geonav.errors import CheckpointError, ConfigError, FlightError, FlightTimeout, SafetyViolation
+from geonav.errors import (
+    CheckpointError,
+    CommandRejected,
+    ConfigError,
+    FlightError,
+    FlightTimeout,
+    SafetyViolation,
+)
 from geonav.geo import LocalNED, ScenePoint
 from geonav.mavlink_bridge import modes as M
 from geonav.mavlink_bridge.camera_source import (
@@ -40,11 +57,18 @@ from geonav.mavlink_bridge.camera_source import (
 from geonav.mavlink_bridge.conversion import ACTION_NAMES, ACTION_STEPS, TargetPlanner
 from geonav.mavlink_bridge.pump import SetpointPump
 from geonav.mavlink_bridge.record import FlightRecorder
-from geonav.mavlink_bridge.safety import TAKEOVER, Geofence, Watchdog
+from geonav.mavlink_bridge.safety import (
+    Geofence,
+    LinkLost,
+    OperatorTakeover,
+    PreflightRefused,
+    Watchdog,
+)
 from geonav.mavlink_bridge.sequence import (
     Timeouts,
     end_flight,
     horizontal_distance_m,
+    set_mode_confirmed,
     take_off,
     wait_position,
     wait_ready,
@@ -55,6 +79,26 @@ log = logging.getLogger(__name__)
 
 Cell = tuple[int, int]
 Progress = Callable[[str, float], None]
+
+#: outcome -> process exit code (2 stays "bad input" for the CLI; signals give 128 + N).
+OUTCOMES: dict[str, int] = {
+    "reached": 0,
+    "missed": 1,
+    "refused": 3,
+    "link_lost": 4,
+    "takeover": 5,
+    "safety_stop": 6,
+    "interrupted": 130,
+}
+OUTCOME_WORDS = {
+    "reached": "reached the target",
+    "missed": "did not reach the target",
+    "refused": "refused before arming",
+    "link_lost": "link lost",
+    "takeover": "operator took over",
+    "safety_stop": "safety stop",
+    "interrupted": "interrupted",
+}
 
 
 class Policy(Protocol):
@@ -104,7 +148,7 @@ def path_actions(start: Cell, target: Cell) -> list[int]:
 
 
 def load_policy(checkpoint: str | Path) -> Policy:
-    """``geonav.policy.inference.PolicyRunner.from_checkpoint`` (imported lazily).
+    """``geonav.policy.inference.PolicyRunner.from_checkpoint`` (imported lazily), validated.
 
     Raises:
         CheckpointError: the policy package or the checkpoint is unusable.
@@ -117,10 +161,56 @@ def load_policy(checkpoint: str | Path) -> Policy:
             f"({err}); install geonav with its policy package"
         ) from err
     runner = PolicyRunner.from_checkpoint(checkpoint)
-    missing = [k for k in ("obs_size_px", "alt_m", "step_m") if k not in runner.meta]
-    if missing:
-        raise CheckpointError(f"checkpoint {checkpoint} meta lacks {missing}")
+    validate_meta(runner.meta, checkpoint)
     return runner  # type: ignore[no-any-return]
+
+
+def validate_meta(meta: dict[str, Any], source: object = "policy") -> None:
+    """Check the flight-relevant checkpoint meta: obs_size_px, alt_m (number or list), step_m.
+
+    Raises:
+        CheckpointError: a key is missing or has the wrong type.
+    """
+    missing = [k for k in ("obs_size_px", "alt_m", "step_m") if k not in meta]
+    if missing:
+        raise CheckpointError(f"checkpoint {source} meta lacks {missing}")
+    alts = meta["alt_m"] if isinstance(meta["alt_m"], (list, tuple)) else [meta["alt_m"]]
+    try:
+        ok = bool(alts) and all(float(a) > 0 for a in alts) and float(meta["step_m"]) > 0
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise CheckpointError(
+            f"checkpoint {source}: alt_m {meta['alt_m']!r} / step_m {meta['step_m']!r} "
+            "must be positive numbers (alt_m may be a list of training altitudes)"
+        )
+
+
+def resolve_alt(meta: dict[str, Any], alt_m: float | None) -> float:
+    """The flight altitude: ``alt_m`` if given, else the policy's single training altitude.
+
+    Raises:
+        ConfigError: the checkpoint was trained at several altitudes and none was chosen.
+    """
+    trained = meta.get("alt_m")
+    alts = [float(a) for a in trained] if isinstance(trained, (list, tuple)) else None
+    if alt_m is not None:
+        if not (math.isfinite(alt_m) and alt_m > 0):
+            raise ConfigError(f"flight altitude {alt_m!r} m: give a positive number of metres")
+        if alts is not None and not any(abs(alt_m - a) < 1e-6 for a in alts):
+            log.warning(
+                "flying at %g m, which is not one of the policy's training altitudes %s",
+                alt_m,
+                alts,
+            )
+        return float(alt_m)
+    if alts is not None:
+        if len(alts) == 1:
+            return alts[0]
+        raise ConfigError(
+            f"the policy was trained at several altitudes {alts} m: choose one with --alt"
+        )
+    return float(trained)  # type: ignore[arg-type]
 
 
 @dataclass(frozen=True)
@@ -130,10 +220,11 @@ class FlightConfig:
     Attributes:
         target_cell: lattice cell (ix east, iy north) to reach.
         start_cell: cell to start from (None: the cell under the take-off point).
-        alt_m: flight altitude above the take-off point (None: the policy's ``alt_m``).
+        alt_m: flight altitude above the take-off point (None: the policy's ``alt_m``;
+            required for a policy trained at several altitudes).
         step_m: lattice step (None: the policy's ``step_m``).
         region_m: lattice region (xmin, ymin, xmax, ymax) in scene metres
-            (None: the scene bounds shrunk by ``fence_margin_m``).
+            (None: the scene bounds; cells count from its south-west corner).
         end: ``"land"`` or ``"rtl"`` at the end.
         camera: ``synthetic``, ``opencv:N`` or an rtsp:// URL.
         max_steps: step budget.
@@ -145,12 +236,21 @@ class FlightConfig:
         policy_deadline_s: the pump stops and lands when the loop has not ticked for this long.
         heartbeat_timeout_s: autopilot heartbeat watchdog.
         position_timeout_s: LOCAL_POSITION_NED watchdog.
-        fence_margin_m: fence = scene bounds shrunk by this.
+        fence_margin_m: setpoints stay this far inside the scene bounds (None: one
+            lattice step); the measured position may overshoot the setpoint fence by
+            half of it before the flight ends, so a breach is caught inside the scene.
         max_distance_m: fence radius around home (inf = off).
-        max_alt_m: altitude clamp (upper).
+        max_alt_m: altitude clamp (upper); a clamp is logged as a warning.
         set_origin: send SET_GPS_GLOBAL_ORIGIN at the scene origin (GPS-less vehicles).
         telemetry_rate_hz: requested LOCAL_POSITION_NED rate.
         yaw_deg: fixed heading (0 = north, as the policy was trained).
+        obstacles: the obstacle model (None: the environment's default
+            ``geonav.tasks.ObstacleModel()``); cells blocked at the flight altitude
+            are never flown into.
+        on_obstacle: ``"stay"`` (refuse the move and keep position, as the env does)
+            or ``"end"`` (end the flight with a safety stop).
+        takeover_airborne: accept a vehicle that is already armed and flying; its
+            current position and altitude are the start (otherwise geonav refuses).
         timeouts: per-phase timeouts.
     """
 
@@ -170,17 +270,24 @@ class FlightConfig:
     policy_deadline_s: float = 2.0
     heartbeat_timeout_s: float = 3.0
     position_timeout_s: float = 2.0
-    fence_margin_m: float = 0.0
+    fence_margin_m: float | None = None
     max_distance_m: float = math.inf
     max_alt_m: float = 120.0
     set_origin: bool = False
     telemetry_rate_hz: float = 10.0
     yaw_deg: float = 0.0
+    obstacles: Any = None
+    on_obstacle: str = "stay"
+    takeover_airborne: bool = False
     timeouts: Timeouts = field(default_factory=Timeouts)
 
     def __post_init__(self) -> None:
         if self.end not in ("land", "rtl"):
             raise ConfigError(f"end action {self.end!r}: use 'land' or 'rtl'")
+        if self.on_obstacle not in ("stay", "end"):
+            raise ConfigError(f"on_obstacle {self.on_obstacle!r}: use 'stay' or 'end'")
+        if self.fence_margin_m is not None and not self.fence_margin_m >= 0:
+            raise ConfigError(f"fence margin {self.fence_margin_m!r} m must be >= 0")
 
 
 @dataclass
@@ -198,6 +305,12 @@ class FlightResult:
         record_path: ``flight.jsonl``.
         png_path: ``track.png`` (None if plotting failed).
         latencies_ms: frame -> setpoint latency per step.
+        outcome: one of :data:`OUTCOMES` (``reached``, ``missed``, ``refused``,
+            ``link_lost``, ``takeover``, ``safety_stop``, ``interrupted``).
+        end_ok: the end action was confirmed and the vehicle disarmed (False when
+            LAND/RTL failed or was never needed).
+        signal_name: the signal that interrupted the flight (``SIGTERM``...), if any.
+        notes: warnings the operator must see (altitude clamp, obstacle refusals).
     """
 
     success: bool
@@ -210,6 +323,150 @@ class FlightResult:
     record_path: Path
     png_path: Path | None
     latencies_ms: list[float] = field(default_factory=list)
+    outcome: str = "missed"
+    end_ok: bool = False
+    signal_name: str | None = None
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def exit_code(self) -> int:
+        """Process exit code of the outcome (128 + signal number when a signal ended it)."""
+        if self.outcome == "interrupted" and self.signal_name:
+            return 128 + int(signal.Signals[self.signal_name])
+        return OUTCOMES[self.outcome]
+
+    def summary(self) -> str:
+        """One line for the console."""
+        if self.end_action == "none":
+            end = (
+                "no end action ("
+                + ("the operator has control" if self.outcome == "takeover" else "nothing flown")
+                + ")"
+            )
+        elif self.end_ok:
+            end = f"end {self.end_action} confirmed, disarmed"
+        else:
+            end = (
+                f"end {self.end_action} NOT confirmed (disarmed {self.disarmed}); "
+                "the autopilot's failsafe must act"
+            )
+        return (
+            f"{OUTCOME_WORDS[self.outcome]}: {self.reason}; {self.steps} steps; {end}; "
+            f"record {self.record_path}; track {self.png_path}"
+        )
+
+
+class FlightInterrupted(KeyboardInterrupt):
+    """SIGINT, SIGTERM or SIGHUP during a flight (handled like Ctrl-C: land, record)."""
+
+    def __init__(self, signum: int) -> None:
+        self.signum = signum
+        super().__init__(signal.Signals(signum).name)
+
+
+class _StopSignals:
+    """Turns the first SIGINT/SIGTERM/SIGHUP into :class:`FlightInterrupted`; later ones are logged.
+
+    Installed only in the main thread; a SIGINT that is ignored (a background
+    job) stays ignored, SIGTERM and SIGHUP still land the vehicle.
+    """
+
+    SIGNALS = ("SIGINT", "SIGTERM", "SIGHUP")
+
+    def __init__(self) -> None:
+        self.received: int | None = None
+        self.may_raise = True
+        self._old: dict[int, Any] = {}
+
+    def install(self) -> None:
+        if threading.current_thread() is not threading.main_thread():
+            return
+        for name in self.SIGNALS:
+            sig = getattr(signal, name, None)
+            if sig is None:
+                continue
+            old = signal.getsignal(sig)
+            if sig == signal.SIGINT and old is signal.SIG_IGN:
+                continue
+            self._old[sig] = old
+            signal.signal(sig, self._handle)
+
+    def restore(self) -> None:
+        for sig, old in self._old.items():
+            signal.signal(sig, old)
+        self._old.clear()
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        name = signal.Signals(signum).name
+        if self.received is None:
+            self.received = signum
+            log.error("%s received: ending the flight (LAND/RTL as configured)", name)
+            if self.may_raise:
+                raise FlightInterrupted(signum)
+            return
+        log.warning("%s received again: geonav is already ending the flight", name)
+
+
+@contextmanager
+def stop_signals() -> Iterator[_StopSignals]:
+    """SIGINT/SIGTERM/SIGHUP end the flight like Ctrl-C while the block runs."""
+    sigs = _StopSignals()
+    sigs.install()
+    try:
+        yield sigs
+    finally:
+        sigs.restore()
+
+
+@dataclass
+class FlightPlan:
+    """What is checked before connecting: altitude, lattice, obstacles, target (and start)."""
+
+    alt_m: float
+    step_m: float
+    margin_m: float
+    lattice: Any
+    blocked: np.ndarray
+    obstacles: Any
+    notes: list[str]
+
+
+def plan_flight(scene: Any, meta: dict[str, Any], cfg: FlightConfig) -> FlightPlan:
+    """Check the flight plan against the scene before any connection.
+
+    Raises:
+        ConfigError: no altitude chosen for a multi-altitude policy, or a start
+            or target cell that is outside the lattice or an obstacle.
+    """
+    from geonav.tasks import Lattice, ObstacleModel, blocked_cells
+
+    validate_meta(meta)
+    notes: list[str] = []
+    alt_m = resolve_alt(meta, cfg.alt_m)
+    if alt_m > cfg.max_alt_m:
+        note = f"altitude {alt_m:g} m clamped to {cfg.max_alt_m:g} m (--max-alt)"
+        log.warning("%s", note)
+        notes.append(note)
+        alt_m = cfg.max_alt_m
+    step_m = float(cfg.step_m if cfg.step_m is not None else meta["step_m"])
+    margin = step_m if cfg.fence_margin_m is None else float(cfg.fence_margin_m)
+    lattice = Lattice(cfg.region_m or tuple(scene.bounds_m), step_m)
+    obstacles = cfg.obstacles if cfg.obstacles is not None else ObstacleModel()
+    blocked = blocked_cells(scene, lattice, alt_m, obstacles)
+    for name, c in (("target", cfg.target_cell), ("start", cfg.start_cell)):
+        if c is None:
+            continue
+        if not lattice.contains(c):
+            raise ConfigError(
+                f"{name} cell {tuple(c)} is outside the lattice of shape {lattice.shape} "
+                f"({step_m:g} m cells over region {tuple(round(v, 1) for v in lattice.region_m)})"
+            )
+        if blocked[tuple(c)]:
+            raise ConfigError(
+                f"{name} cell {tuple(c)} is an obstacle at {alt_m:g} m (the DSM rises above "
+                f"{alt_m - obstacles.clearance_m:g} m there); choose another cell or altitude"
+            )
+    return FlightPlan(alt_m, step_m, margin, lattice, blocked, obstacles, notes)
 
 
 def run_flight(
@@ -224,32 +481,52 @@ def run_flight(
     """Fly ``policy`` on ``vehicle`` over ``scene`` (a :class:`geonav.scene.Scene`).
 
     Never raises for flight problems: they end the flight safely and are
-    reported in the result (KeyboardInterrupt is re-raised after landing).
-    """
-    from geonav.camera import Camera, WarpRenderer
-    from geonav.tasks import Lattice
+    reported in the result (``outcome`` and ``exit_code``). SIGINT, SIGTERM and
+    SIGHUP (when called from the main thread) end the flight like Ctrl-C.
 
+    Raises:
+        ConfigError: the plan is invalid (checked before connecting).
+    """
+    with stop_signals() as sigs:
+        return _run_flight(vehicle, scene, policy, cfg, out_dir, progress, frames, sigs)
+
+
+def _run_flight(
+    vehicle: Vehicle,
+    scene: Any,
+    policy: Policy,
+    cfg: FlightConfig,
+    out_dir: str | Path,
+    progress: Progress | None,
+    frames: FrameSource | None,
+    sigs: _StopSignals,
+) -> FlightResult:
+    from geonav.camera import Camera, WarpRenderer
+
+    plan = plan_flight(scene, policy.meta, cfg)
     t = cfg.timeouts
     meta = policy.meta
-    alt_m = float(cfg.alt_m if cfg.alt_m is not None else meta["alt_m"])
-    step_m = float(cfg.step_m if cfg.step_m is not None else meta["step_m"])
+    alt_m, step_m, lattice = plan.alt_m, plan.step_m, plan.lattice
     size_px = int(meta.get("obs_size_px", 84))
     camera = Camera(size_px=size_px, fov_deg=float(meta.get("fov_deg", 90.0)))
     rec = FlightRecorder(out_dir)
     report = progress or (lambda phase, frac: None)
     pump: SetpointPump | None = None
-    lattice = None
+    watchdog: Watchdog | None = None
+    planner: TargetPlanner | None = None
     fence: Geofence | None = None
     cell: Cell | None = None
     start_xy: tuple[float, float] | None = None
     target_xy: tuple[float, float] | None = None
     success = False
     reason = ""
+    outcome = "missed"
     steps = 0
     latencies: list[float] = []
-    takeover = False
-    armed_once = False
-    interrupted: BaseException | None = None
+    notes = list(plan.notes)
+    phase = "preflight"
+    we_fly = False  # geonav armed the vehicle (or took an airborne one over)
+    last_sample = [0.0]
     rec.write(
         "header",
         scene=scene.name,
@@ -259,43 +536,113 @@ def run_flight(
         policy_meta=meta,
         alt_m=alt_m,
         step_m=step_m,
+        fence_margin_m=plan.margin_m,
+        lattice_region_m=lattice.region_m,
+        blocked_cells=[list(map(int, c)) for c in np.argwhere(plan.blocked)],
     )
+    for note in notes:
+        rec.event(note)
+
+    def sample(s: VehicleState, phase_name: str | None = None) -> None:
+        """Record the measured track (every phase: climb, steps, return, landing)."""
+        now = time.monotonic()
+        if planner is None or s.position is None or now - last_sample[0] < 0.1:
+            return
+        last_sample[0] = now
+        p, alt = planner.to_scene(s.position)
+        rec.sample(p.x_m, p.y_m, phase_name or phase, alt)
+
+    def fence_check_position(s: VehicleState) -> None:
+        if fence is None or planner is None or s.position is None:
+            return
+        p, _ = planner.to_scene(s.position)
+        why = fence.position_violation(p)
+        if why is not None:
+            raise SafetyViolation(f"position fence: {why}")
+
     try:
         report("connect", 0.0)
         vehicle.connect(t.connect_s)
         rec.event(f"connected: {vehicle.autopilot}")
-        wait_ready(vehicle, t)
+        s = wait_ready(vehicle, t)
+        if s.armed and not cfg.takeover_airborne:
+            raise PreflightRefused(
+                f"the vehicle is already armed (mode {s.mode}): geonav does not take over a "
+                "vehicle someone else is flying; disarm it, or pass --takeover-airborne to "
+                "start from its current position and altitude"
+            )
         vehicle.request_telemetry(cfg.telemetry_rate_hz, t.command_s)
         s = wait_position(vehicle, t, set_origin=scene.origin if cfg.set_origin else None)
         assert s.origin is not None and s.position is not None
-        rec.event(f"EKF origin {s.origin}; home position NED {s.position}")
+        airborne = s.armed or s.landed_state in (
+            M.MAV_LANDED_STATE_IN_AIR,
+            M.MAV_LANDED_STATE_TAKEOFF,
+            M.MAV_LANDED_STATE_LANDING,
+        )
+        if airborne and not cfg.takeover_airborne:
+            raise PreflightRefused(
+                f"the vehicle is already in the air (landed state {s.landed_state}, mode "
+                f"{s.mode}): pass --takeover-airborne to start from its current position"
+            )
+        if cfg.takeover_airborne and not (s.armed and airborne):
+            raise PreflightRefused(
+                "--takeover-airborne given but the vehicle is not armed and flying "
+                f"(armed {s.armed}, landed state {s.landed_state}); fly without it"
+            )
+        rec.event(f"EKF origin {s.origin}; position NED {s.position}")
         report("connect", 1.0)
-        planner = TargetPlanner(scene.frame, s.origin, s.position.down_m, alt_m, cfg.yaw_deg)
-        home_scene, _ = planner.to_scene(s.position)
+        home_down = s.position.down_m
+        if airborne:
+            # The take-off point is home; the EKF origin is usually there too.
+            home_down = s.origin.alt_m - s.home.alt_m if s.home is not None else 0.0
+            alt_m = float(home_down - s.position.down_m)
+            rec.event(f"taking over an airborne vehicle at {alt_m:.1f} m above home")
+            try:
+                plan = plan_flight(scene, meta, replace(cfg, alt_m=alt_m, start_cell=None))
+            except ConfigError as err:
+                raise PreflightRefused(f"taking over at {alt_m:.1f} m: {err}") from err
+        planner = TargetPlanner(
+            scene.frame, s.origin, home_down, alt_m, cfg.yaw_deg, autopilot=vehicle.autopilot
+        )
+        here_scene, _ = planner.to_scene(s.position)
         fence = Geofence.from_bounds(
             scene.bounds_m,
-            cfg.fence_margin_m,
-            home=home_scene,
+            plan.margin_m,
+            home=here_scene,
             max_distance_m=cfg.max_distance_m,
             max_alt_m=cfg.max_alt_m,
+            overshoot_m=plan.margin_m / 2.0,
         )
-        fence.check(home_scene)
-        clamped = fence.clamp_alt(alt_m)
-        if clamped != alt_m:
-            rec.event(f"altitude {alt_m} m clamped to {clamped} m")
-            planner.alt_m = alt_m = clamped
-        region = cfg.region_m or (fence.xmin_m, fence.ymin_m, fence.xmax_m, fence.ymax_m)
-        lattice = Lattice(region, step_m)
-        start_cell = cfg.start_cell or lattice.cell_of(home_scene)
-        for name, c in (("start", start_cell), ("target", cfg.target_cell)):
-            if not lattice.contains(c):
-                raise ConfigError(
-                    f"{name} cell {c} is outside the lattice of shape {lattice.shape}"
-                )
+        why = fence.violation(here_scene)
+        if why is not None:
+            raise PreflightRefused(f"the vehicle is outside the scene fence: {why}")
+        if not fence.min_alt_m <= alt_m <= fence.max_alt_m:
+            raise PreflightRefused(
+                f"flight altitude {alt_m:.1f} m is outside the fence's {fence.min_alt_m:g}.."
+                f"{fence.max_alt_m:g} m band"
+            )
+        start_cell = (cfg.start_cell if not airborne else None) or lattice.cell_of(here_scene)
+        if not lattice.contains(start_cell) or plan.blocked[start_cell]:
+            raise PreflightRefused(
+                f"start cell {start_cell} is outside the lattice {lattice.shape} or an obstacle "
+                f"at {alt_m:g} m"
+            )
+        here_cell = lattice.cell_of(here_scene)
+        if lattice.contains(here_cell) and plan.blocked[here_cell]:
+            raise PreflightRefused(
+                f"the take-off point's cell {here_cell} is an obstacle at {alt_m:g} m: "
+                "the climb would hit it"
+            )
         start_pt = lattice.center(start_cell)
         target_pt = lattice.center(cfg.target_cell)
         start_xy, target_xy = (start_pt.x_m, start_pt.y_m), (target_pt.x_m, target_pt.y_m)
-        fence.check(start_pt)
+        for name, pt in (("start", start_pt), ("target", target_pt)):
+            why = fence.violation(pt)
+            if why is not None:
+                raise PreflightRefused(
+                    f"{name} cell is outside the geofence ({why}); fence margin "
+                    f"{plan.margin_m:g} m (--fence-margin)"
+                )
 
         renderer = WarpRenderer(scene, camera)
         target_img = renderer.render(target_pt.x_m, target_pt.y_m, alt_m, cfg.yaw_deg)
@@ -312,9 +659,10 @@ def run_flight(
         )
 
         def fence_check(ned: LocalNED) -> None:
+            assert planner is not None and fence is not None
             p, alt = planner.to_scene(ned)
-            fence.check(p)  # type: ignore[union-attr]
-            if not (fence.min_alt_m - 0.5 <= alt <= fence.max_alt_m + 0.5):  # type: ignore[union-attr]
+            fence.check(p)
+            if not (fence.min_alt_m - 0.5 <= alt <= fence.max_alt_m + 0.5):
                 raise SafetyViolation(f"setpoint altitude {alt:.1f} m outside the altitude band")
 
         pump = SetpointPump(
@@ -325,41 +673,72 @@ def run_flight(
             watchdog=watchdog,
             land_timeout_s=t.command_s,
         )
+
+        def in_flight_check() -> None:
+            st = vehicle.state()
+            sample(st)
+            fence_check_position(st)
+
         report("take-off", 0.0)
-        take_off(vehicle, pump, planner.to_ned(home_scene), cfg.yaw_deg, cfg.arrive_alt_tol_m, t)
-        armed_once = True
+        if airborne:
+            phase = "takeover"
+            we_fly = True
+            hold = planner.to_ned(here_scene)
+            pump.set_target(LocalNED(s.position.north_m, s.position.east_m, hold.down_m), 0.0)
+            pump.start()
+            if vehicle.autopilot == M.PX4:
+                time.sleep(min(1.2, t.mode_s / 2))
+            set_mode_confirmed(vehicle, watchdog.autonomy_mode, t, pump.tick, watchdog)
+        else:
+            phase = "arming"
+
+            def armed() -> None:
+                nonlocal phase, we_fly
+                phase, we_fly = "takeoff", True
+
+            take_off(
+                vehicle,
+                pump,
+                planner.to_ned(here_scene),
+                cfg.yaw_deg,
+                cfg.arrive_alt_tol_m,
+                t,
+                watchdog=watchdog,
+                check=in_flight_check,
+                on_armed=armed,
+            )
+        phase = "autonomy"
         watchdog.engage()
         rec.event(f"airborne at {alt_m:.1f} m in {vehicle.state().mode}")
         report("take-off", 1.0)
 
         step_timeout = cfg.step_timeout_s or (3.0 * step_m / 2.0 + 10.0)
+
+        def arrive(ned: LocalNED, timeout_s: float) -> tuple[float, LocalNED]:
+            assert pump is not None and watchdog is not None
+            return _wait_arrival(vehicle, pump, watchdog, ned, cfg, timeout_s, in_flight_check)
+
         # Fly to the start cell (a positioning leg, not a policy step).
         previous = start_pt
         ned = planner.to_ned(start_pt)
         pump.set_target(ned, cfg.yaw_deg)
-        _wait_arrival(
-            vehicle,
-            pump,
-            watchdog,
-            ned,
-            cfg,
-            rec,
-            planner,
-            step_timeout + horizontal_distance_m(ned, vehicle.state().position or ned) / 2.0,
-        )
+        arrive(ned, step_timeout + horizontal_distance_m(ned, vehicle.state().position or ned) / 2)
         cell = start_cell
         rec.event(f"at start cell {cell}")
         policy.reset()
         while True:
             if cell == cfg.target_cell:
                 success, reason = True, f"target cell {cfg.target_cell} reached in {steps} steps"
+                outcome = "reached"
                 break
             if steps >= cfg.max_steps:
                 reason = f"step budget of {cfg.max_steps} spent at cell {cell}"
+                outcome = "missed"
                 break
             pump.raise_if_fault()
             state = vehicle.state()
-            _check(watchdog, state)
+            watchdog.check(state)
+            fence_check_position(state)
             t_frame = time.perf_counter()
             image = frames.frame(state)
             action = int(policy.act(image, target_img))
@@ -371,17 +750,39 @@ def run_flight(
                 raise FlightError(f"policy returned action {action}; expected 0..3")
             nxt = planner.next_target(previous, action, step_m)
             nxt_cell = lattice.cell_of(nxt)
+            base = dict(step=steps, action=action, action_name=ACTION_NAMES[action])
             if not lattice.contains(nxt_cell):
                 # As in the environment: a move out of the region leaves the agent in place.
                 rec.write(
                     "step",
-                    step=steps,
-                    action=action,
-                    action_name=ACTION_NAMES[action],
+                    **base,
                     cell=cell,
                     blocked=True,
                     events=["move out of the lattice: stayed"],
                 )
+                continue
+            if plan.blocked[nxt_cell]:
+                text = (
+                    f"obstacle: cell {nxt_cell} is blocked at {alt_m:g} m (DSM, "
+                    f"env rule geonav.tasks.blocked_cells)"
+                )
+                if cfg.on_obstacle == "end":
+                    rec.write(
+                        "step",
+                        **base,
+                        cell=cell,
+                        blocked=True,
+                        events=[f"{text}: flight ended (--on-obstacle end)"],
+                    )
+                    raise SafetyViolation(f"{text}; --on-obstacle end")
+                rec.write(
+                    "step",
+                    **base,
+                    cell=cell,
+                    blocked=True,
+                    events=[f"{text}: refused, kept position (--on-obstacle stay)"],
+                )
+                log.warning("%s: move refused, vehicle keeps its position", text)
                 continue
             ned = planner.to_ned(nxt)
             try:
@@ -389,9 +790,7 @@ def run_flight(
             except SafetyViolation as err:
                 rec.write(
                     "step",
-                    step=steps,
-                    action=action,
-                    action_name=ACTION_NAMES[action],
+                    **base,
                     cell=cell,
                     target_scene=None,
                     refused_target=(nxt.x_m, nxt.y_m),
@@ -400,16 +799,12 @@ def run_flight(
                 raise
             latency_ms = (time.perf_counter() - t_frame) * 1000.0
             latencies.append(latency_ms)
-            arrival_s, measured = _wait_arrival(
-                vehicle, pump, watchdog, ned, cfg, rec, planner, step_timeout
-            )
+            arrival_s, measured = arrive(ned, step_timeout)
             m_scene, m_alt = planner.to_scene(measured)
             previous, cell = nxt, nxt_cell
             rec.write(
                 "step",
-                step=steps,
-                action=action,
-                action_name=ACTION_NAMES[action],
+                **base,
                 cell=cell,
                 target_scene=(nxt.x_m, nxt.y_m),
                 target_ned=(ned.north_m, ned.east_m, ned.down_m),
@@ -420,29 +815,53 @@ def run_flight(
                 latency_ms=round(latency_ms, 3),
                 events=[],
             )
-    except SafetyViolation as err:
-        reason = f"safety: {err}"
-        takeover = TAKEOVER in str(err)
-        log.error("flight ended by a safety rule: %s", err)
+    except FlightInterrupted as err:
+        reason = f"interrupted by {err.args[0]}"
+        outcome = "interrupted"
         rec.event(reason)
-    except FlightError as err:
-        reason = f"{type(err).__name__}: {err}"
-        log.error("flight ended: %s", reason)
-        rec.event(reason)
-    except KeyboardInterrupt as err:
+    except KeyboardInterrupt:
         reason = "interrupted by the operator (Ctrl-C)"
-        interrupted = err
+        outcome = "interrupted"
+        sigs.received = sigs.received or signal.SIGINT
         log.error("%s", reason)
         rec.event(reason)
+    except FlightError as err:
+        outcome = _classify(err, phase)
+        reason = (
+            str(err)
+            if isinstance(err, SafetyViolation | LinkLost | PreflightRefused)
+            else (f"{type(err).__name__}: {err}")
+        )
+        log.error("flight ended (%s): %s", outcome, reason)
+        rec.event(f"{outcome}: {reason}")
     except Exception as err:  # any bug still ends in LAND/RTL below
         reason = f"unexpected error: {type(err).__name__}: {err}"
+        outcome = "safety_stop"
         log.exception("flight ended by an unexpected error")
         rec.event(reason)
-        interrupted = err
     finally:
-        end_action, disarmed = _finish(vehicle, pump, cfg, takeover, armed_once, rec)
+        sigs.may_raise = False  # the landing itself is never interrupted by a signal
+        end_action, disarmed, end_ok, end_outcome, end_note = _finish(
+            vehicle,
+            pump,
+            watchdog,
+            cfg,
+            outcome == "takeover",
+            we_fly,
+            rec,
+            lambda st: sample(st, "landing"),
+        )
         if frames is not None:
             frames.close()
+    if end_outcome is not None and outcome in ("reached", "missed", "safety_stop"):
+        outcome = end_outcome
+    if end_note:
+        reason = f"{reason}; {end_note}" if reason else end_note
+    signal_name = None
+    if sigs.received is not None:
+        signal_name = signal.Signals(sigs.received).name
+        if outcome != "interrupted":
+            rec.event(f"{signal_name} received while ending the flight")
     png = None
     try:
         png = rec.plot(scene, lattice, start_xy, target_xy, fence)
@@ -451,20 +870,23 @@ def run_flight(
     rec.write(
         "result",
         success=success,
+        outcome=outcome,
+        exit_code=OUTCOMES[outcome],
         reason=reason,
         steps=steps,
         final_cell=cell,
         end_action=end_action,
+        end_ok=end_ok,
         disarmed=disarmed,
+        signal=signal_name,
+        notes=notes,
     )
     rec.close()
     try:
         vehicle.close()
-    except FlightError as err:
+    except Exception as err:  # noqa: BLE001 - closing never ends in a traceback
         log.debug("closing vehicle: %s", err)
     report("done", 1.0)
-    if interrupted is not None and isinstance(interrupted, KeyboardInterrupt):
-        raise interrupted
     return FlightResult(
         success,
         reason,
@@ -476,13 +898,26 @@ def run_flight(
         rec.path,
         png,
         latencies,
+        outcome=outcome,
+        end_ok=end_ok,
+        signal_name=signal_name if outcome == "interrupted" else None,
+        notes=notes,
     )
 
 
-def _check(watchdog: Watchdog, s: VehicleState) -> None:
-    reason = watchdog.violation(s)
-    if reason is not None:
-        raise SafetyViolation(reason)
+def _classify(err: FlightError, phase: str) -> str:
+    """Outcome word of a flight error raised in ``phase``."""
+    if isinstance(err, LinkLost):
+        return "link_lost"
+    if isinstance(err, OperatorTakeover):
+        return "takeover"
+    if isinstance(err, PreflightRefused):
+        return "refused"
+    if phase in ("preflight", "arming") and isinstance(err, (CommandRejected, FlightTimeout)):
+        return "refused"
+    if phase in ("preflight", "arming") and not isinstance(err, SafetyViolation):
+        return "refused"
+    return "safety_stop"
 
 
 def _wait_arrival(
@@ -491,28 +926,25 @@ def _wait_arrival(
     watchdog: Watchdog,
     target: LocalNED,
     cfg: FlightConfig,
-    rec: FlightRecorder,
-    planner: TargetPlanner,
     timeout_s: float,
+    check: Callable[[], None],
 ) -> tuple[float, LocalNED]:
     """Wait until LOCAL_POSITION_NED is within tolerance of ``target`` AND slow.
+
+    ``check`` runs every cycle (track sample and the position fence).
 
     Returns:
         (seconds it took, the measured position).
     """
     t0 = time.monotonic()
-    last_sample = 0.0
     while True:
         pump.tick()
         pump.raise_if_fault()
         s = vehicle.state()
-        _check(watchdog, s)
+        watchdog.check(s)
+        check()
         now = time.monotonic()
         if s.position is not None:
-            if now - last_sample > 0.1:
-                p, _ = planner.to_scene(s.position)
-                rec.sample(p.x_m, p.y_m)
-                last_sample = now
             d_h = horizontal_distance_m(s.position, target)
             d_v = abs(s.position.down_m - target.down_m)
             if (
@@ -533,42 +965,84 @@ def _wait_arrival(
 def _finish(
     vehicle: Vehicle,
     pump: SetpointPump | None,
+    watchdog: Watchdog | None,
     cfg: FlightConfig,
     takeover: bool,
-    armed_once: bool,
+    we_fly: bool,
     rec: FlightRecorder,
-) -> tuple[str, bool]:
-    """Stop the stream, then LAND/RTL and wait for disarm (nothing after a takeover)."""
+    sample: Callable[[VehicleState], None],
+) -> tuple[str, bool, bool, str | None, str]:
+    """Stop the stream, then LAND/RTL confirmed on the heartbeat and wait for disarm.
+
+    Nothing is commanded after a takeover, or on a vehicle geonav never armed.
+
+    Returns:
+        (end action, disarmed, end confirmed, outcome override or None, note for the reason).
+    """
     if pump is not None:
         pump.stop()
     try:
         s = vehicle.state()
     except FlightError:
-        return "none", False
+        return "none", False, False, None, ""
     if takeover:
         rec.event("operator has control: no further commands from geonav")
-        log.warning("operator took over (mode %s); geonav sends nothing more", s.mode)
-        return "none", not s.armed
-    if not s.armed and not armed_once:
-        return "none", True
+        log.warning("someone else has control (mode %s); geonav sends nothing more", s.mode)
+        return "none", not s.armed, False, None, ""
+    if not we_fly:
+        return "none", not s.armed, False, None, ""
     try:
-        s = end_flight(vehicle, cfg.end, cfg.timeouts)
-        rec.event(f"{cfg.end} complete, disarmed")
-        return cfg.end, not s.armed
-    except FlightError as err:
-        log.error("%s failed: %s; the autopilot's own failsafe must act", cfg.end.upper(), err)
+        s = end_flight(vehicle, cfg.end, cfg.timeouts, watchdog, sample)
+        rec.event(f"{cfg.end} confirmed on the heartbeat, disarmed")
+        return cfg.end, not s.armed, True, None, ""
+    except OperatorTakeover as err:
+        log.warning("%s", err)
+        rec.event(str(err))
+        return cfg.end, False, False, "takeover", str(err)
+    except LinkLost as err:
+        log.error("%s", err)
         rec.event(f"{cfg.end} failed: {err}")
+        return cfg.end, False, False, "link_lost", str(err)
+    except FlightError as err:
+        note = f"{cfg.end.upper()} failed: {err}; the autopilot's own failsafe must act"
+        log.error("%s", note)
+        rec.event(note)
         try:
-            return cfg.end, not vehicle.state().armed
+            return cfg.end, not vehicle.state().armed, False, None, note
         except FlightError:
-            return cfg.end, False
+            return cfg.end, False, False, None, note
+
+
+def load_task(spec: str | Path) -> Any:
+    """A task from ``FILE`` (a task set with one task) or ``FILE:NAME``.
+
+    Raises:
+        ConfigError: the file has several tasks and no name was given, or no such name.
+    """
+    from geonav.tasks import TaskSet
+
+    text = str(spec)
+    path, _, name = text.rpartition(":") if ":" in Path(text).name else (text, "", "")
+    ts = TaskSet.load(path)
+    if name:
+        for task in ts.tasks:
+            if task.name == name:
+                return task
+        raise ConfigError(f"task {name!r} not in {path}; it has {[t.name for t in ts.tasks]}")
+    if len(ts.tasks) != 1:
+        raise ConfigError(
+            f"{path} holds {len(ts.tasks)} tasks: choose one with --task {path}:NAME "
+            f"({', '.join(t.name for t in ts.tasks[:8])}{', ...' if len(ts.tasks) > 8 else ''})"
+        )
+    return ts.tasks[0]
 
 
 def fly(
     policy: Policy | str | Path,
     scene: Any,
     *,
-    target_cell: Cell,
+    target_cell: Cell | None = None,
+    task: Any = None,
     connect: str | None = None,
     backend: str = "pymavlink",
     camera: str = "synthetic",
@@ -583,10 +1057,16 @@ def fly(
 ) -> FlightResult:
     """Fly a checkpoint (or a Policy) on a scene; with ``dry_run`` against an in-process emulator.
 
+    The plan (altitude, lattice, obstacles, start and target cells) is checked
+    before any connection is opened.
+
     Args:
         policy: a checkpoint path or an object following :class:`Policy`.
         scene: a :class:`geonav.scene.Scene` or a scene package folder.
-        target_cell: lattice cell to reach.
+        target_cell: lattice cell to reach (in the task's lattice when ``task`` is given).
+        task: a :class:`geonav.tasks.NavTask` (or ``FILE[:NAME]``): its region, step,
+            altitude, target, step budget and obstacle model (``target_cell`` and
+            ``config`` override them).
         connect: connection string (ignored with ``dry_run``).
         backend: ``pymavlink`` or ``mavsdk``.
         camera: ``synthetic``, ``opencv:N`` or rtsp URL.
@@ -599,43 +1079,58 @@ def fly(
         emulator_config: an EmulatorConfig to use for ``dry_run`` (home is set from the scene).
         progress: callback (phase, fraction).
         **config: further :class:`FlightConfig` fields.
+
+    Raises:
+        ConfigError: a bad plan or option (before connecting).
     """
     from geonav.scene import Scene
 
     if not isinstance(scene, Scene):
         scene = Scene.open(scene)
-    pol: Policy = load_policy(policy) if isinstance(policy, (str, Path)) else policy
+    if isinstance(task, (str, Path)):
+        task = load_task(task)
+    if task is not None:
+        for key, value in (
+            ("region_m", tuple(task.region_m)),
+            ("step_m", task.step_m),
+            ("alt_m", task.alt_m),
+            ("max_steps", task.max_steps),
+            ("obstacles", task.obstacles),
+        ):
+            if config.get(key) is None:
+                config[key] = value
+        if target_cell is None:
+            target_cell = tuple(task.target_cell)
+    if target_cell is None:
+        raise ConfigError("no target: give --target IX,IY or --task FILE[:NAME]")
+    config = {k: v for k, v in config.items() if v is not None}
     cfg = FlightConfig(
-        target_cell=tuple(target_cell),
-        start_cell=start_cell,
-        end=end,  # type: ignore[arg-type]
+        target_cell=(int(target_cell[0]), int(target_cell[1])),
+        start_cell=None if start_cell is None else (int(start_cell[0]), int(start_cell[1])),
+        end=end,
         camera=camera,
         **config,
     )
+    pol: Policy = load_policy(policy) if isinstance(policy, (str, Path)) else policy
+    plan = plan_flight(scene, pol.meta, cfg)  # before connecting: bad plans fail fast
     emu = None
     if dry_run:
         from geonav.mavlink_bridge.emulator import Emulator, EmulatorConfig
-        from geonav.tasks import Lattice
 
-        step_m = float(cfg.step_m or pol.meta["step_m"])
-        xmin, ymin, xmax, ymax = scene.bounds_m
-        m = cfg.fence_margin_m
-        lattice = Lattice(cfg.region_m or (xmin + m, ymin + m, xmax - m, ymax - m), step_m)
-        if start_cell is None:
-            start_cell = (lattice.shape[0] // 2, lattice.shape[1] // 2)
-            cfg = FlightConfig(
-                **{
-                    **{f: getattr(cfg, f) for f in cfg.__dataclass_fields__},
-                    "start_cell": start_cell,
-                }
+        if cfg.start_cell is None:
+            nx, ny = plan.lattice.shape
+            free = [(ix, iy) for ix in range(nx) for iy in range(ny) if not plan.blocked[ix, iy]]
+            centre = (nx // 2, ny // 2)
+            cfg = replace(
+                cfg,
+                start_cell=min(free, key=lambda c: abs(c[0] - centre[0]) + abs(c[1] - centre[1])),
             )
-        home = scene.frame.to_lonlat(lattice.center(start_cell), 0.0)
-        # A dry run is a rehearsal, not a failsafe test: emulated time runs 3x faster and
-        # PX4's offboard-loss timeout is 6 s (2 s wall), so the in-process emulator's GIL
-        # sharing on a busy machine does not end the flight.
+        assert cfg.start_cell is not None
+        home = scene.frame.to_lonlat(plan.lattice.center(cfg.start_cell), 0.0)
+        # A dry run is a rehearsal at 3x emulated speed; the emulator bounds its emulated
+        # time per iteration, so a busy machine slows the vehicle instead of jumping it.
         ec = emulator_config or EmulatorConfig(
             autopilot=autopilot,
-            offboard_loss_s=6.0,
             time_scale=3.0,
             boot_s=1.0,
             prearm_s=2.0,
@@ -657,13 +1152,19 @@ def fly(
 
 
 __all__ = [
+    "OUTCOMES",
     "FlightConfig",
+    "FlightInterrupted",
     "FlightResult",
     "Policy",
     "ScenePoint",
     "ScriptedPolicy",
     "fly",
     "load_policy",
+    "load_task",
     "path_actions",
+    "plan_flight",
+    "resolve_alt",
     "run_flight",
+    "stop_signals",
 ]

@@ -23,6 +23,10 @@ operator takeover. ``use_offboard_plugin=True`` selects the plugin anyway
 (same message: LOCAL_NED, type_mask 2552), and then ``stop_setpoints``
 calls ``Offboard.stop()``. ``health.is_global_position_ok``/``is_armable`` are
 not used: they can stay false on ArduPilot while it flies.
+
+MAVSDK's own C++ log is routed into Python logging (logger ``mavsdk``,
+``mavsdk.logging.log_subscribe``) instead of raw lines on stdout; the
+telemetry watchers restart after an error, and ``close()`` never raises.
 """
 
 from __future__ import annotations
@@ -45,6 +49,32 @@ from geonav.mavlink_bridge.vehicle import Connection, VehicleState
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
+_MAVSDK_LOG = logging.getLogger("mavsdk")
+_log_routed = False
+
+
+def route_mavsdk_log() -> None:
+    """Send MAVSDK's C++ log lines to the ``mavsdk`` Python logger (once per process)."""
+    global _log_routed
+    if _log_routed:
+        return
+    try:
+        from mavsdk.logging import LogLevel, log_subscribe
+    except ImportError:
+        return
+    levels = {
+        LogLevel.DEBUG: logging.DEBUG,
+        LogLevel.INFO: logging.INFO,
+        LogLevel.WARN: logging.WARNING,
+        LogLevel.ERROR: logging.ERROR,
+    }
+
+    def forward(level: Any, message: str, file: str | None, line: int) -> bool:
+        _MAVSDK_LOG.log(levels.get(level, logging.INFO), "%s", message)
+        return True  # suppress MAVSDK's own printing
+
+    log_subscribe(forward)
+    _log_routed = True
 
 
 class MavsdkVehicle:
@@ -85,13 +115,17 @@ class MavsdkVehicle:
         self._origin: LonLat | None = None
         self._home: LonLat | None = None
         self._landed = 0
-        self._texts: collections.deque[str] = collections.deque(maxlen=20)
+        self._texts: collections.deque[tuple[float, str]] = collections.deque(maxlen=20)
         self._closed = False
         self._offboard_streaming = False
 
     # ------------------------------------------------------------ plumbing
     def _run(self, coro: Awaitable[T], timeout_s: float, what: str) -> T:
-        fut = asyncio.run_coroutine_threadsafe(coro, self._loop)  # type: ignore[arg-type]
+        if self._closed and what != "shutdown":
+            if hasattr(coro, "close"):
+                coro.close()  # type: ignore[union-attr]
+            raise FlightError(f"MAVSDK: {what}: the connection is closed")
+        fut: concurrent.futures.Future[T] = asyncio.run_coroutine_threadsafe(coro, self._loop)  # type: ignore[arg-type]
         try:
             return fut.result(timeout_s)
         except concurrent.futures.TimeoutError as err:
@@ -111,6 +145,7 @@ class MavsdkVehicle:
                 f"the MAVSDK backend needs the native mavsdk>=4 package ({err}); "
                 "pip install 'mavsdk>=4.1,<5' or use --backend pymavlink"
             ) from err
+        route_mavsdk_log()
         self._thread.start()
 
         async def setup() -> None:
@@ -142,14 +177,14 @@ class MavsdkVehicle:
             kind = await system.autopilot_type()
             self.autopilot = {1: M.PX4, 2: M.ARDUPILOT}.get(int(kind), "")
             loop = asyncio.get_running_loop()
-            for coro in (
-                self._watch_heartbeat(),
-                self._watch_position(),
-                self._watch_texts(),
-                self._watch_home(),
-                self._watch_landed(),
+            for watch in (
+                self._watch_heartbeat,
+                self._watch_position,
+                self._watch_texts,
+                self._watch_home,
+                self._watch_landed,
             ):
-                self._tasks.append(loop.create_task(coro))
+                self._tasks.append(loop.create_task(self._keep(watch)))
 
         self._run(setup(), timeout_s + 5.0, "connect")
         deadline = time.monotonic() + timeout_s
@@ -167,6 +202,17 @@ class MavsdkVehicle:
             self._sysid,
             self.conn.mavsdk(),
         )
+
+    async def _keep(self, watch: Callable[[], Awaitable[None]]) -> None:
+        """Run a telemetry watcher; restart it after an error (never dies silently)."""
+        while not self._closed:
+            try:
+                await watch()
+            except asyncio.CancelledError:
+                raise
+            except Exception as err:  # noqa: BLE001
+                log.warning("MAVSDK %s stopped (%s); restarting", watch.__name__, err)
+            await asyncio.sleep(0.5)
 
     async def _watch_heartbeat(self) -> None:
         async for msg in self._direct.subscribe_message("HEARTBEAT"):
@@ -191,7 +237,7 @@ class MavsdkVehicle:
         async for st in self._telemetry.subscribe_status_text():
             text = str(st.text)
             severity = int(getattr(st.type, "value", 6))
-            self._texts.append(text)
+            self._texts.append((time.monotonic(), text))
             log.log(logging.WARNING if severity >= 3 else logging.INFO, "autopilot: %s", text)
             if self.on_statustext is not None:
                 self.on_statustext(severity, text)
@@ -223,9 +269,12 @@ class MavsdkVehicle:
 
             try:
                 self._run(shutdown(), 5.0, "shutdown")
-            except FlightError as err:
+            except Exception as err:  # noqa: BLE001 - close never raises
                 log.warning("MAVSDK shutdown: %s", err)
-            self._loop.call_soon_threadsafe(self._loop.stop)
+            try:
+                self._loop.call_soon_threadsafe(self._loop.stop)
+            except RuntimeError as err:
+                log.debug("MAVSDK loop already closed: %s", err)
             self._thread.join(timeout=2.0)
 
     # --------------------------------------------------------------- state
@@ -248,7 +297,8 @@ class MavsdkVehicle:
                 origin=self._origin,
                 home=self._home,
                 landed_state=self._landed,
-                last_statustext=self._texts[-1] if self._texts else "",
+                last_statustext=self._texts[-1][1] if self._texts else "",
+                statustext_age_s=now - self._texts[-1][0] if self._texts else math.inf,
             )
 
     # ------------------------------------------------------------ commands
@@ -276,9 +326,10 @@ class MavsdkVehicle:
     def _checked(
         self, command: int, params: tuple[float, ...], timeout_s: float, what: str
     ) -> None:
+        sent_t = time.monotonic()
         result = self._command(command, params, timeout_s)
         if result != M.MAV_RESULT_ACCEPTED:
-            text = self._texts[-1] if self._texts else ""
+            text = self._recent_text(sent_t - 1.0)
             raise CommandRejected(
                 f"{what}: MAV_CMD {command} answered {M.MAV_RESULT_NAMES.get(result, result)}"
                 + (f" (autopilot says: {text!r})" if text else "")
@@ -288,14 +339,20 @@ class MavsdkVehicle:
         from mavsdk.plugins.action import ActionError
 
         coro = getattr(self._act, name)()
+        sent_t = time.monotonic()
         try:
             self._run(coro, timeout_s, f"action {name}")
         except ActionError as err:
-            text = self._texts[-1] if self._texts else ""
+            text = self._recent_text(sent_t - 1.0)
             raise CommandRejected(
                 f"{name}: MAVSDK action failed ({err})"
                 + (f" (autopilot says: {text!r})" if text else "")
             ) from err
+
+    def _recent_text(self, since: float) -> str:
+        """The newest STATUSTEXT received after ``since`` (monotonic), else ''."""
+        with self._lock:
+            return self._texts[-1][1] if self._texts and self._texts[-1][0] >= since else ""
 
     def request_telemetry(self, rate_hz: float, timeout_s: float) -> None:
         """MAVSDK ``set_rate_*`` (SET_MESSAGE_INTERVAL) and the EKF origin."""

@@ -104,7 +104,8 @@ ARDUPILOT_MODES: dict[str, int] = {
     "althold": 2,
     "auto": 3,
     "guided": 4,
-    "hold": 5,  # LOITER
+    "loiter": 5,
+    "hold": 5,  # generic name for LOITER (decoded as "loiter")
     "rtl": 6,
     "circle": 7,
     "land": 9,

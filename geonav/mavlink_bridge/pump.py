@@ -7,7 +7,11 @@ flight loop keeps calling :meth:`SetpointPump.tick`; when the last tick is
 older than ``deadline_s`` it stops sending, stops any backend resender and
 commands LAND. It also runs the watchdogs every cycle and stops on the first
 fault without commanding anything (the flight loop decides), and it refuses
-any target outside the geofence, so such a target is never sent.
+any target outside the geofence, so such a target is never sent. Nothing
+kills the pump silently: an exception in a send (MAVSDK raises after 1 s
+without an answer) is recorded as a :class:`PumpFault` that the flight loop
+sees within one cycle (:meth:`SetpointPump.raise_if_fault`) and ends in
+LAND/RTL.
 """
 
 from __future__ import annotations
@@ -17,9 +21,9 @@ import threading
 import time
 from collections.abc import Callable
 
-from geonav.errors import FlightError, SafetyViolation
+from geonav.errors import FlightError
 from geonav.geo import LocalNED
-from geonav.mavlink_bridge.safety import Watchdog
+from geonav.mavlink_bridge.safety import PumpFault, Watchdog
 from geonav.mavlink_bridge.vehicle import Vehicle
 
 log = logging.getLogger(__name__)
@@ -56,6 +60,7 @@ class SetpointPump:
         self.watchdog = watchdog
         self.land_timeout_s = land_timeout_s
         self.fault: str | None = None
+        self.fault_error: FlightError | None = None
         self.landed_by_pump = False
         self.sent = 0
         self._target: LocalNED | None = None
@@ -80,7 +85,9 @@ class SetpointPump:
 
         Raises:
             SafetyViolation: the target is outside the fence; nothing is sent.
+            PumpFault (or the watchdog's error): the pump already stopped on a fault.
         """
+        self.raise_if_fault()
         if self.fence_check is not None:
             self.fence_check(target)
         with self._lock:
@@ -88,7 +95,11 @@ class SetpointPump:
             self._yaw_deg = yaw_deg
         self.tick()
         if self.running:
-            self.vehicle.send_position_target(target, yaw_deg)
+            try:
+                self.vehicle.send_position_target(target, yaw_deg)
+            except Exception as err:  # a send that raises is a fault, never silent
+                self._fail(PumpFault(f"setpoint send failed: {type(err).__name__}: {err}"))
+                self.raise_if_fault()
             self.sent += 1
 
     def tick(self) -> None:
@@ -112,24 +123,34 @@ class SetpointPump:
         if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join(timeout=2.0)
         self._thread = None
-        try:
-            self.vehicle.stop_setpoints()
-        except FlightError as err:
-            log.warning("stopping the backend's setpoint stream: %s", err)
+        self._stop_backend()
+
+    def _fail(self, err: FlightError) -> None:
+        if self.fault_error is None:
+            self.fault_error = err
+            self.fault = str(err)
+            log.error("setpoint pump stopped: %s", err)
+        self._stop.set()
+        self._stop_backend()
 
     def _run(self) -> None:
+        try:
+            self._loop()
+        except Exception as err:  # the pump thread never dies silently
+            self._fail(PumpFault(f"setpoint pump failed: {type(err).__name__}: {err}"))
+
+    def _loop(self) -> None:
         period = 1.0 / self.rate_hz
         while not self._stop.is_set():
             started = time.monotonic()
             stalled_s = started - self._last_tick
             if stalled_s > self.deadline_s:
-                self.fault = (
-                    f"policy loop stalled: no tick for {stalled_s:.1f} s "
-                    f"(deadline {self.deadline_s:.1f} s); stopped setpoints, commanding LAND"
+                self._fail(
+                    PumpFault(
+                        f"policy loop stalled: no tick for {stalled_s:.1f} s "
+                        f"(deadline {self.deadline_s:.1f} s); stopped setpoints, commanding LAND"
+                    )
                 )
-                log.error("%s", self.fault)
-                self._stop.set()
-                self._stop_backend()
                 try:
                     self.vehicle.land(self.land_timeout_s)
                     self.landed_by_pump = True
@@ -137,30 +158,32 @@ class SetpointPump:
                     log.error("LAND after policy stall failed: %s", err)
                 return
             if self.watchdog is not None:
+                fault: FlightError | None
                 try:
-                    reason = self.watchdog.violation(self.vehicle.state())
-                except FlightError as err:
-                    reason = str(err)
-                if reason is not None:
-                    self.fault = reason
-                    log.error("setpoint pump stopped: %s", reason)
-                    self._stop.set()
-                    self._stop_backend()
+                    fault = self.watchdog.error(self.vehicle.state())
+                except FlightError as state_err:
+                    fault = state_err
+                if fault is not None:
+                    self._fail(fault)
                     return
             with self._lock:
                 target, yaw = self._target, self._yaw_deg
             if target is not None:
-                self.vehicle.send_position_target(target, yaw)
+                try:
+                    self.vehicle.send_position_target(target, yaw)
+                except Exception as err:
+                    self._fail(PumpFault(f"setpoint send failed: {type(err).__name__}: {err}"))
+                    return
                 self.sent += 1
             self._stop.wait(max(0.0, period - (time.monotonic() - started)))
 
     def _stop_backend(self) -> None:
         try:
             self.vehicle.stop_setpoints()
-        except FlightError as err:
+        except Exception as err:  # noqa: BLE001 - stopping must never raise
             log.warning("stopping the backend's setpoint stream: %s", err)
 
     def raise_if_fault(self) -> None:
-        """Raise SafetyViolation if the pump stopped on a fault."""
-        if self.fault is not None:
-            raise SafetyViolation(self.fault)
+        """Raise the pump's fault (typed: LinkLost, OperatorTakeover, PumpFault, ...)."""
+        if self.fault_error is not None:
+            raise type(self.fault_error)(str(self.fault_error))

@@ -2,9 +2,23 @@
 
 Threads: one receiver thread owns ``recv_match`` and keeps the latest
 telemetry; one thread sends our own 1 Hz HEARTBEAT (some autopilot services
-start only after they see one); senders share a lock. Commands go out as
-COMMAND_LONG and wait for the matching COMMAND_ACK (resent with an
-incremented ``confirmation`` when none arrives; IN_PROGRESS extends the wait).
+start only after they see one); senders share a lock. Neither thread can die
+of an exception, and ``close()`` never raises.
+
+Link ownership: pymavlink's ``autoreconnect`` is off (it reconnects inside
+both threads at once and they die with AttributeError when the port is
+gone). The receiver thread is the one owner of reconnection: on a TCP or
+serial link that errors, or is silent for ``RECONNECT_AFTER_S``, it reopens
+the link about once a second. ``connect()`` retries opening a TCP or serial
+link until its timeout (a companion computer often boots before the
+autopilot's port listens), as MAVSDK does.
+
+Commands go out as COMMAND_LONG and wait for the matching COMMAND_ACK: same
+command id, addressed to us, and received after this request was first
+sent (an older request's late ACK is never taken); resent with an
+incremented ``confirmation`` when none arrives; IN_PROGRESS extends the wait.
+LAND and RTL are MAV_CMD_NAV_LAND / NAV_RETURN_TO_LAUNCH, so their ACKs cannot
+be confused with a DO_SET_MODE's.
 """
 
 from __future__ import annotations
@@ -24,6 +38,9 @@ from geonav.mavlink_bridge._mav import mavutil
 from geonav.mavlink_bridge.vehicle import Connection, VehicleState
 
 log = logging.getLogger(__name__)
+
+#: reopen a silent TCP/serial link after this many seconds without any message.
+RECONNECT_AFTER_S = 3.0
 
 _CMD_NAMES = {
     M.MAV_CMD_NAV_RETURN_TO_LAUNCH: "NAV_RETURN_TO_LAUNCH",
@@ -79,9 +96,11 @@ class PymavlinkVehicle:
         self._origin: LonLat | None = None
         self._home: LonLat | None = None
         self._landed_state = 0
-        self._acks: dict[int, Any] = {}
-        self._texts: collections.deque[str] = collections.deque(maxlen=20)
+        self._acks: dict[int, tuple[float, Any]] = {}
+        self._texts: collections.deque[tuple[float, str]] = collections.deque(maxlen=20)
         self._t0 = time.monotonic()
+        self._last_rx = -math.inf
+        self._closed = False
 
     # ---------------------------------------------------------------- link
     def connect(self, timeout_s: float) -> None:
@@ -90,17 +109,29 @@ class PymavlinkVehicle:
         Raises:
             FlightTimeout: no autopilot heartbeat within ``timeout_s``.
         """
-        device, baud = self.conn.pymavlink()
-        try:
-            self._m = mavutil.mavlink_connection(
-                device,
-                baud=baud,
-                source_system=self._src[0],
-                source_component=self._src[1],
-                autoreconnect=True,
-            )
-        except OSError as err:
-            raise FlightError(f"cannot open MAVLink connection {self.conn.raw!r}: {err}") from err
+        deadline = time.monotonic() + timeout_s
+        waited = False
+        while True:
+            try:
+                self._m = self._open()
+                break
+            except OSError as err:
+                retry = self.conn.kind in ("tcp", "serial")
+                if not retry or time.monotonic() > deadline:
+                    raise FlightError(
+                        f"cannot open MAVLink connection {self.conn.raw!r}: {err}"
+                        + (f" (retried for {timeout_s:.0f} s)" if retry else "")
+                    ) from err
+                if not waited:
+                    log.warning(
+                        "%s not available yet (%s); retrying until the connect timeout (%.0f s)",
+                        self.conn.raw,
+                        err,
+                        timeout_s,
+                    )
+                    waited = True
+                time.sleep(0.5)
+        timeout_s = max(0.5, deadline - time.monotonic())
         self._stop.clear()
         for target, name in ((self._recv_loop, "mav-recv"), (self._heartbeat_loop, "mav-hb")):
             t = threading.Thread(target=target, name=name, daemon=True)
@@ -122,50 +153,106 @@ class PymavlinkVehicle:
             self.conn.raw,
         )
 
+    def _open(self) -> Any:
+        device, baud = self.conn.pymavlink()
+        return mavutil.mavlink_connection(
+            device,
+            baud=baud,
+            source_system=self._src[0],
+            source_component=self._src[1],
+            autoreconnect=False,
+            retries=0,
+        )
+
     def close(self) -> None:
-        """Stop the threads and close the link."""
+        """Stop the threads and close the link (never raises; safe to call twice)."""
         self._stop.set()
         for t in self._threads:
-            t.join(timeout=1.0)
+            if t is not threading.current_thread():
+                t.join(timeout=2.0)
         self._threads.clear()
-        if self._m is not None:
+        with self._send_lock:
+            m, self._m = self._m, None
+            self._closed = True
+        if m is not None:
             try:
-                self._m.close()
-            except OSError as err:
+                m.close()
+            except Exception as err:  # noqa: BLE001 - a dead port must not raise at exit
                 log.debug("closing MAVLink connection: %s", err)
-            self._m = None
 
     def _send(self, fn_name: str, *args: Any) -> None:
-        if self._m is None:
-            raise FlightError("MAVLink connection is closed")
         with self._send_lock:
+            if self._m is None:
+                raise FlightError("MAVLink connection is closed")
             try:
                 getattr(self._m.mav, fn_name)(*args)
-            except OSError as err:
-                log.warning("MAVLink send %s failed: %s", fn_name, err)
+            except (OSError, AttributeError, ValueError) as err:
+                # A dead link: the watchdogs see the silence; the sender must not crash.
+                log.debug("MAVLink send %s failed: %s", fn_name, err)
 
     def _heartbeat_loop(self) -> None:
-        while True:
-            self._send(
-                "heartbeat_send", M.MAV_TYPE_ONBOARD_CONTROLLER, M.MAV_AUTOPILOT_INVALID, 0, 0, 0
-            )
+        while not self._stop.is_set():
+            try:
+                self._send(
+                    "heartbeat_send",
+                    M.MAV_TYPE_ONBOARD_CONTROLLER,
+                    M.MAV_AUTOPILOT_INVALID,
+                    0,
+                    0,
+                    0,
+                )
+            except FlightError:
+                return
+            except Exception:  # noqa: BLE001 - the heartbeat thread never dies
+                log.exception("sending our HEARTBEAT failed")
             if self._stop.wait(1.0):
                 return
 
     def _recv_loop(self) -> None:
+        last_reopen = time.monotonic()
         while not self._stop.is_set():
             m = self._m
             if m is None:
                 return
+            broken = False
             try:
                 msg = m.recv_match(blocking=True, timeout=0.1)
-            except (OSError, ValueError) as err:
+            except Exception as err:  # noqa: BLE001 - the receiver never dies
                 log.debug("MAVLink receive error: %s", err)
+                msg, broken = None, True
                 time.sleep(0.05)
+            if msg is not None:
+                self._last_rx = time.monotonic()
+                try:
+                    self._on_message(msg)
+                except Exception:  # noqa: BLE001
+                    log.exception("handling %s failed", msg.get_type())
                 continue
-            if msg is None:
-                continue
-            self._on_message(msg)
+            silent = time.monotonic() - max(self._last_rx, last_reopen) > RECONNECT_AFTER_S
+            if self.conn.kind in ("tcp", "serial") and (broken or silent):
+                if time.monotonic() - last_reopen >= 1.0:
+                    last_reopen = time.monotonic()
+                    self._reopen()
+
+    def _reopen(self) -> None:
+        """Reopen a TCP/serial link (the receiver thread is its one owner)."""
+        try:
+            new = self._open()
+        except OSError as err:
+            log.debug("reconnecting %s: %s", self.conn.raw, err)
+            return
+        with self._send_lock:
+            if self._closed:
+                new.close()
+                return
+            old, self._m = self._m, new
+            new.target_system, new.target_component = self._target
+        log.warning("MAVLink link %s reopened", self.conn.raw)
+        try:
+            if old is not None:
+                old.close()
+        except Exception as err:  # noqa: BLE001
+            log.debug("closing the old link: %s", err)
 
     def _on_message(self, msg: Any) -> None:
         kind = msg.get_type()
@@ -213,10 +300,10 @@ class PymavlinkVehicle:
                     0,
                     self._src[1],
                 ):
-                    self._acks[msg.command] = msg
+                    self._acks[msg.command] = (now, msg)
             elif kind == "STATUSTEXT":
                 text = msg.text if isinstance(msg.text, str) else msg.text.decode(errors="replace")
-                self._texts.append(text)
+                self._texts.append((now, text))
                 level = logging.WARNING if msg.severity <= 4 else logging.INFO
                 log.log(level, "autopilot: %s", text)
                 if self.on_statustext is not None:
@@ -243,7 +330,8 @@ class PymavlinkVehicle:
                 origin=self._origin,
                 home=self._home,
                 landed_state=self._landed_state,
-                last_statustext=self._texts[-1] if self._texts else "",
+                last_statustext=self._texts[-1][1] if self._texts else "",
+                statustext_age_s=now - self._texts[-1][0] if self._texts else math.inf,
             )
 
     # ------------------------------------------------------------ commands
@@ -257,6 +345,7 @@ class PymavlinkVehicle:
         """
         p = tuple(params) + (0.0,) * (7 - len(params))
         per_try = timeout_s / tries
+        sent_t = time.monotonic()
         with self._lock:
             self._acks.pop(command, None)
         for attempt in range(tries):
@@ -265,13 +354,13 @@ class PymavlinkVehicle:
             with self._lock:
                 while True:
                     left = deadline - time.monotonic()
-                    ack = self._acks.get(command)
+                    got = self._acks.pop(command, None)
+                    # Only an ACK received after this request was first sent is its answer.
+                    ack = got[1] if got is not None and got[0] >= sent_t else None
                     if ack is not None and ack.result == M.MAV_RESULT_IN_PROGRESS:
-                        self._acks.pop(command, None)
                         deadline = time.monotonic() + per_try
                         continue
                     if ack is not None:
-                        self._acks.pop(command, None)
                         return int(ack.result)
                     if left <= 0:
                         break
@@ -283,18 +372,20 @@ class PymavlinkVehicle:
     def _checked(
         self, command: int, params: tuple[float, ...], timeout_s: float, what: str
     ) -> None:
+        sent_t = time.monotonic()
         result = self.command(command, params, timeout_s)
         if result != M.MAV_RESULT_ACCEPTED:
-            reason = self._recent_text()
+            reason = self._recent_text(since=sent_t - 1.0)
             raise CommandRejected(
                 f"{what}: {command_name(command)} answered "
                 f"{M.MAV_RESULT_NAMES.get(result, result)}"
                 + (f" (autopilot says: {reason!r})" if reason else "")
             )
 
-    def _recent_text(self) -> str:
+    def _recent_text(self, since: float) -> str:
+        """The newest STATUSTEXT received after ``since`` (monotonic), else ''."""
         with self._lock:
-            return self._texts[-1] if self._texts else ""
+            return self._texts[-1][1] if self._texts and self._texts[-1][0] >= since else ""
 
     def request_telemetry(self, rate_hz: float, timeout_s: float) -> None:
         """SET_MESSAGE_INTERVAL for the streams the bridge reads; request origin and home once."""
@@ -355,12 +446,12 @@ class PymavlinkVehicle:
         )
 
     def land(self, timeout_s: float) -> None:
-        """Switch to LAND mode."""
-        self.set_mode("land", timeout_s)
+        """MAV_CMD_NAV_LAND (p4 yaw NaN = keep); the caller confirms LAND on the heartbeat."""
+        self._checked(M.MAV_CMD_NAV_LAND, (0, 0, 0, math.nan, 0, 0, 0), timeout_s, "LAND")
 
     def return_to_launch(self, timeout_s: float) -> None:
-        """Switch to RTL mode."""
-        self.set_mode("rtl", timeout_s)
+        """MAV_CMD_NAV_RETURN_TO_LAUNCH; the caller confirms RTL on the heartbeat."""
+        self._checked(M.MAV_CMD_NAV_RETURN_TO_LAUNCH, (), timeout_s, "RTL")
 
     def send_position_target(self, target: LocalNED, yaw_deg: float) -> None:
         """One SET_POSITION_TARGET_LOCAL_NED, MAV_FRAME_LOCAL_NED, type_mask 2552."""

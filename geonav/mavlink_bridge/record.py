@@ -3,9 +3,11 @@
 ``flight.jsonl`` holds one object per line, each with a ``kind``:
 ``header`` (settings, scene, origin, lattice), ``step`` (time, action,
 target in scene metres and NED, measured position, arrival time, frame
-latency, safety events), ``event`` and ``result``. ``track.png`` shows the
-scene image, the lattice cells, the fence, the flown track, the start and
-the target.
+latency, safety events), ``event`` and ``result``. ``track.png`` is zoomed
+to the flight (the flown track, the start, the target and the step targets
+plus a margin of two cells) and shows the scene image, the lattice cells,
+the fence, the whole measured track (climb, steps, return and landing, each
+phase in its own colour) drawn above the step markers.
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ class FlightRecorder:
         self._f = self.path.open("w", encoding="utf-8")
         self._t0 = time.monotonic()
         self.track_xy: list[tuple[float, float]] = []
+        self.track_phase: list[str] = []
         self.steps: list[dict[str, Any]] = []
         self.events: list[str] = []
 
@@ -55,9 +58,10 @@ class FlightRecorder:
         self.events.append(text)
         self.write("event", text=text)
 
-    def sample(self, x_m: float, y_m: float) -> None:
-        """A measured scene position for the track plot."""
+    def sample(self, x_m: float, y_m: float, phase: str = "autonomy", alt_m: float = 0.0) -> None:
+        """A measured scene position (and its flight phase) for the track plot."""
         self.track_xy.append((x_m, y_m))
+        self.track_phase.append(phase)
 
     def close(self) -> None:
         """Close the JSON lines file."""
@@ -81,6 +85,7 @@ class FlightRecorder:
         xmin, ymin, xmax, ymax = scene.bounds_m
         fig, ax = plt.subplots(figsize=(7, 7), dpi=100)
         ax.imshow(scene.rgb, extent=(xmin, xmax, ymin, ymax), origin="upper")
+        view = _view_box(self, scene.bounds_m, lattice, start, target)
         if lattice is not None:
             lx0, ly0, _, _ = lattice.region_m
             nx, ny = lattice.shape
@@ -98,13 +103,32 @@ class FlightRecorder:
                 ls="--",
                 label="geofence",
             )
-        if self.track_xy:
-            xy = np.asarray(self.track_xy)
-            ax.plot(xy[:, 0], xy[:, 1], color="red", lw=1.5, label="flown track")
         targets = [s["target_scene"] for s in self.steps if s.get("target_scene")]
         if targets:
             t = np.asarray(targets)
-            ax.scatter(t[:, 0], t[:, 1], s=12, color="yellow", zorder=3, label="step targets")
+            ax.scatter(t[:, 0], t[:, 1], s=14, color="yellow", zorder=3, label="step targets")
+        if self.track_xy:
+            xy = np.asarray(self.track_xy)
+            phases = np.asarray(self.track_phase)
+            colours = {
+                "takeoff": "deepskyblue",
+                "arming": "deepskyblue",
+                "takeover": "violet",
+                "autonomy": "red",
+                "landing": "magenta",
+            }
+            for name in dict.fromkeys(self.track_phase):
+                sel = phases == name
+                ax.plot(
+                    xy[sel, 0],
+                    xy[sel, 1],
+                    ".-",
+                    ms=2,
+                    color=colours.get(name, "red"),
+                    lw=1.5,
+                    zorder=5,
+                    label=f"flown track: {name}",
+                )
         if start is not None:
             ax.scatter(
                 [start[0]], [start[1]], marker="o", s=80, color="cyan", zorder=4, label="start"
@@ -113,14 +137,39 @@ class FlightRecorder:
             ax.scatter(
                 [target[0]], [target[1]], marker="*", s=200, color="lime", zorder=4, label="target"
             )
+        ax.set_xlim(view[0], view[2])
+        ax.set_ylim(view[1], view[3])
         ax.set_xlabel("x east (m)")
         ax.set_ylabel("y north (m)")
         ax.set_title(f"geonav flight over {getattr(scene, 'name', 'scene')}")
-        ax.legend(loc="upper right", fontsize=8)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(loc="upper right", fontsize=8)
         png = self.out_dir / "track.png"
         fig.savefig(png, bbox_inches="tight")
         plt.close(fig)
         return png
+
+
+def _view_box(
+    rec: FlightRecorder,
+    bounds_m: tuple[float, float, float, float],
+    lattice: Any | None,
+    start: tuple[float, float] | None,
+    target: tuple[float, float] | None,
+) -> tuple[float, float, float, float]:
+    """The part of the scene the flight used, plus two cells (whole scene if nothing flew)."""
+    pts = list(rec.track_xy)
+    pts += [tuple(s["target_scene"]) for s in rec.steps if s.get("target_scene")]
+    pts += [p for p in (start, target) if p is not None]
+    if not pts:
+        return tuple(bounds_m)  # type: ignore[return-value]
+    xy = np.asarray(pts, float)
+    pad = 2.0 * (lattice.step_m if lattice is not None else 10.0)
+    x0, y0 = xy.min(axis=0) - pad
+    x1, y1 = xy.max(axis=0) + pad
+    side = max(x1 - x0, y1 - y0)  # square, so cells stay square
+    cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
+    return (cx - side / 2, cy - side / 2, cx + side / 2, cy + side / 2)
 
 
 def read_record(path: str | Path) -> list[dict[str, Any]]:

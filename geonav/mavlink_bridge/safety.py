@@ -2,22 +2,42 @@
 
 The geofence is a box from the scene bounds shrunk by a margin, optionally
 intersected with a maximum distance from home. A setpoint outside it is
-never sent (:class:`SetpointPump` checks every target). The watchdogs watch
-the autopilot heartbeat, the position stream, the armed state and the mode:
-a mode other than the autonomy mode once autonomy started means an operator
-(RC or GCS) took over, and the bridge stops commanding without fighting.
+never sent (:class:`SetpointPump` checks every target), and the vehicle's
+*measured* position is checked every cycle against the same fence widened
+by ``overshoot_m`` (half the margin by default: a breach ends the flight
+while the vehicle is still inside the scene). The watchdogs watch the
+autopilot heartbeat, the position stream, the armed state and the mode:
+from the first mode geonav commands, any other mode (set by an RC pilot, a
+GCS or the autopilot's own failsafe) means someone else has control, and
+the bridge stops commanding without fighting.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
-from geonav.errors import SafetyViolation
+from geonav.errors import FlightError, SafetyViolation
 from geonav.geo import ScenePoint
 from geonav.mavlink_bridge.vehicle import VehicleState
 
 TAKEOVER = "operator takeover"
+
+
+class OperatorTakeover(SafetyViolation):
+    """Someone else changed the flight mode: geonav sends nothing more."""
+
+
+class LinkLost(FlightError):
+    """The autopilot's heartbeat stopped (link or autopilot lost)."""
+
+
+class PreflightRefused(FlightError):
+    """geonav refused to start (vehicle state, home, plan) before arming anything."""
+
+
+class PumpFault(SafetyViolation):
+    """The setpoint pump stopped on an error or a stalled policy loop."""
 
 
 @dataclass(frozen=True)
@@ -39,6 +59,7 @@ class Geofence:
     max_distance_m: float = math.inf
     min_alt_m: float = 2.0
     max_alt_m: float = 120.0
+    overshoot_m: float = 0.0
 
     @classmethod
     def from_bounds(
@@ -67,6 +88,27 @@ class Geofence:
                 )
         return None
 
+    def position_violation(self, p: ScenePoint) -> str | None:
+        """Why a *measured* position breaches the fence widened by ``overshoot_m``, or None."""
+        o = self.overshoot_m
+        if not (
+            self.xmin_m - o <= p.x_m <= self.xmax_m + o
+            and self.ymin_m - o <= p.y_m <= self.ymax_m + o
+        ):
+            return (
+                f"vehicle position ({p.x_m:.1f}, {p.y_m:.1f}) m breached the geofence box "
+                f"x {self.xmin_m:.1f}..{self.xmax_m:.1f}, y {self.ymin_m:.1f}..{self.ymax_m:.1f} m "
+                f"(+{o:.1f} m overshoot allowance)"
+            )
+        if self.home is not None and math.isfinite(self.max_distance_m):
+            d = math.hypot(p.x_m - self.home.x_m, p.y_m - self.home.y_m)
+            if d > self.max_distance_m + o:
+                return (
+                    f"vehicle position is {d:.1f} m from home "
+                    f"(fence {self.max_distance_m:.1f} m + {o:.1f} m overshoot allowance)"
+                )
+        return None
+
     def contains(self, p: ScenePoint) -> bool:
         """Whether ``p`` is inside."""
         return self.violation(p) is None
@@ -86,8 +128,14 @@ class Geofence:
 class Watchdog:
     """Link, position and mode watchdogs.
 
+    The mode watch starts with the first mode geonav commands
+    (:meth:`expect`): from then on the heartbeat must show that mode (or the
+    one being commanded right now, :meth:`commanding`); anything else is an
+    :class:`OperatorTakeover`. The armed watch starts with :meth:`engage`
+    (airborne in the autonomy mode).
+
     Args:
-        heartbeat_timeout_s: autopilot heartbeat older than this -> fault.
+        heartbeat_timeout_s: autopilot heartbeat older than this -> LinkLost.
         position_timeout_s: LOCAL_POSITION_NED older than this -> fault.
         autonomy_mode: the mode we fly in (``offboard`` / ``guided``).
     """
@@ -96,26 +144,52 @@ class Watchdog:
     position_timeout_s: float = 2.0
     autonomy_mode: str = "offboard"
     engaged: bool = False
+    expected: frozenset[str] = field(default_factory=frozenset)
+    pending: frozenset[str] = field(default_factory=frozenset)
 
     def engage(self) -> None:
-        """Start watching mode and armed state (after take-off in the autonomy mode)."""
+        """Start watching the armed state too (airborne in the autonomy mode)."""
         self.engaged = True
+        self.expect(self.autonomy_mode)
 
-    def violation(self, s: VehicleState) -> str | None:
-        """The first rule ``s`` breaks, or None."""
+    def commanding(self, *modes: str) -> None:
+        """geonav is switching to ``modes`` now: accept them besides the expected ones."""
+        self.pending = frozenset(modes)
+
+    def expect(self, *modes: str) -> None:
+        """geonav's mode change is confirmed: only ``modes`` are geonav's from now on."""
+        self.expected = frozenset(modes)
+        self.pending = frozenset()
+
+    def error(self, s: VehicleState, *, check_armed: bool = True) -> FlightError | None:
+        """The first rule ``s`` breaks as a typed error, or None."""
         if s.heartbeat_age_s > self.heartbeat_timeout_s:
-            return (
-                f"autopilot heartbeat lost for {s.heartbeat_age_s:.1f} s "
+            return LinkLost(
+                f"link lost: no autopilot heartbeat for {s.heartbeat_age_s:.1f} s "
                 f"(limit {self.heartbeat_timeout_s:.1f} s)"
             )
+        if self.expected and s.mode not in self.expected | self.pending:
+            return OperatorTakeover(
+                f"{TAKEOVER}: mode changed to {s.mode!r} outside geonav "
+                f"(geonav flies in {'/'.join(sorted(self.expected))}; by an RC pilot, "
+                "a GCS or the autopilot's failsafe)"
+            )
         if s.position_age_s > self.position_timeout_s:
-            return (
+            return SafetyViolation(
                 f"LOCAL_POSITION_NED stream lost for {s.position_age_s:.1f} s "
                 f"(limit {self.position_timeout_s:.1f} s)"
             )
-        if self.engaged:
-            if s.mode != self.autonomy_mode:
-                return f"{TAKEOVER}: mode changed to {s.mode!r} outside geonav"
-            if not s.armed:
-                return "vehicle disarmed during autonomous flight"
+        if self.engaged and check_armed and not s.armed:
+            return SafetyViolation("vehicle disarmed during autonomous flight")
         return None
+
+    def violation(self, s: VehicleState) -> str | None:
+        """The first rule ``s`` breaks, or None."""
+        err = self.error(s)
+        return None if err is None else str(err)
+
+    def check(self, s: VehicleState, *, check_armed: bool = True) -> None:
+        """Raise the first rule ``s`` breaks."""
+        err = self.error(s, check_armed=check_armed)
+        if err is not None:
+            raise err

@@ -38,6 +38,7 @@ class VehicleState:
         home: HOME_POSITION or None.
         landed_state: MAV_LANDED_STATE (0 when unknown).
         last_statustext: the most recent STATUSTEXT, "" if none.
+        statustext_age_s: seconds since that STATUSTEXT (inf if none): quote only fresh ones.
     """
 
     autopilot: str
@@ -52,6 +53,7 @@ class VehicleState:
     home: LonLat | None
     landed_state: int = 0
     last_statustext: str = ""
+    statustext_age_s: float = float("inf")
 
     @property
     def speed_mps(self) -> float:
@@ -94,10 +96,10 @@ class Vehicle(Protocol):
         """MAV_CMD_NAV_TAKEOFF to ``alt_m`` above home (ArduPilot, in GUIDED)."""
 
     def land(self, timeout_s: float) -> None:
-        """Land where the vehicle is."""
+        """MAV_CMD_NAV_LAND (ACK checked; the caller confirms the mode on the heartbeat)."""
 
     def return_to_launch(self, timeout_s: float) -> None:
-        """Return to home and land."""
+        """MAV_CMD_NAV_RETURN_TO_LAUNCH (ACK checked; the caller confirms the mode)."""
 
     def send_position_target(self, target: LocalNED, yaw_deg: float) -> None:
         """One SET_POSITION_TARGET_LOCAL_NED (MAV_FRAME_LOCAL_NED, type_mask 2552)."""
@@ -106,7 +108,7 @@ class Vehicle(Protocol):
         """Stop any setpoint resending the backend itself does (MAVSDK's 20 Hz offboard)."""
 
     def close(self) -> None:
-        """Close the link; safe to call twice."""
+        """Close the link; safe to call twice, never raises."""
 
 
 @dataclass(frozen=True)
