@@ -93,7 +93,8 @@ def run(args: argparse.Namespace) -> int:
         for policy in ("oracle", "random"):
             cells, info = rollout(env, 0, policy, args.seed)
             tracks.append((env.tasks[0], cells, f"{policy} at {env.tasks[0].alt_m:g} m: "
-                           f"{'reached' if info['success'] else 'missed'} in {info['steps']} steps"))
+                           f"{'reached' if info['success'] else 'missed'} in "
+                           f"{info['steps']} steps"))
         picture = draw_scene(scene, out / f"scene-{name}.png", tasks=sets.get("meta", scene_tasks),
                              tracks=tracks)
         blocked = {f"{tm.task.alt_m:g}": int(tm.blocked.sum()) for tm in env.task_maps}

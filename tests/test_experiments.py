@@ -150,8 +150,8 @@ def test_resume_after_kill_skips_finished_units(tmp_path):
     cfg = _write(tmp_path, 150)
     root = tmp_path / "runs" / "tiny"
     proc = subprocess.Popen(_geonav("experiment", "run", str(cfg), "--out", "runs", "--jobs", "1",
-                                    "--only", "transfer", "--fly", "no", cwd=tmp_path), cwd=tmp_path,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                    "--only", "transfer", "--fly", "no", cwd=tmp_path),
+                            cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                             start_new_session=True)
     first_done = None
     deadline = time.time() + 240
@@ -187,7 +187,7 @@ def test_resume_after_kill_skips_finished_units(tmp_path):
     header = rows[0].split(",")
     col = header.index("elapsed_s")
     elapsed = [float(r.split(",")[col]) for r in rows[1:]]
-    assert all(b >= a for a, b in zip(elapsed, elapsed[1:]))
+    assert all(b >= a for a, b in zip(elapsed, elapsed[1:], strict=False))
 
 
 def test_config_errors(tmp_path):

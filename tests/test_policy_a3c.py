@@ -118,14 +118,13 @@ def test_learner_reads_the_image_on_the_tiny_task():
     """Issue 10: the trained policy's first-step action probabilities differ across start
     cells (an image-blind policy has the same ones everywhere) and its greedy success from
     every start is well above the task's exact random-walk success."""
-    from geonav.difficulty import env_difficulty
-    from geonav.policy.agent import obs_inputs
-    from geonav.policy.evaluation import evaluate_both
-
     import functools
 
     from geonav.camera import Camera
+    from geonav.difficulty import env_difficulty
     from geonav.env import GeoNavEnv
+    from geonav.policy.agent import obs_inputs
+    from geonav.policy.evaluation import evaluate_both
     from geonav.policy.testing import _scene
     from geonav.testing import tiny_taskset
 

@@ -87,7 +87,8 @@ def fly_result(cfg: ExperimentConfig, root: Path, progress: Any = None) -> dict[
         rel = Path(summary["track_png"]).relative_to(root) if summary["track_png"] else None
         text += (
             "\n## Flight (MAVLink emulator)\n\n"
-            f"The final `{stage}` policy (seed {seed}, {summary['actions']} actions) flew task `{task.name}` at "
+            f"The final `{stage}` policy (seed {seed}, {summary['actions']} actions) flew task "
+            f"`{task.name}` at "
             f"{task.alt_m:g} m through the MAVLink bridge against the "
             f"{fl.get('autopilot', 'px4')} emulator ({fl.get('backend', 'pymavlink')} backend), "
             f"from cell {tuple(start)} to {task.target_cell} (shortest path "
