@@ -142,7 +142,8 @@ class EvalConvergence:
         return float(self.budget if self.episodes is None else self.episodes)
 
 
-def eval_convergence(episodes: Sequence[int], greedy_sr: Sequence[float], budget: int,
+def eval_convergence(episodes: Sequence[int] | np.ndarray,
+                     greedy_sr: Sequence[float] | np.ndarray, budget: int,
                      threshold: float = 0.95) -> EvalConvergence:
     """:class:`EvalConvergence` from evaluation rows (training episode, greedy SR)."""
     ep = list(episodes)

@@ -151,7 +151,7 @@ def task_difficulty(tm: TaskMap, max_steps: int | None = None,
         raise TaskError(f"task {tm.task.name!r} has no start cell within {cap} steps")
     blind, q = best_blind(tm, cap, blind_grid) if blind_grid else (float("nan"), ())
     return TaskDifficulty(
-        random_walk_sr=start_success(tm, cap), blind_sr=blind, blind_probs=tuple(q),
+        random_walk_sr=float(start_success(tm, cap)), blind_sr=blind, blind_probs=tuple(q),
         mean_shortest_path=float(np.mean([tm.dist_to_target[c] for c in starts])),
         n_starts=len(starts), max_steps=int(cap))
 

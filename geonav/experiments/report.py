@@ -215,8 +215,8 @@ def _comparison(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
     crit = cfg.convergence
     lines = [f"## {comp.name}", ""]
     record: dict[str, Any] = {"name": comp.name, "methods": {}}
-    chance = next((s["eval"] for m in comp.methods for s in stats_by_stage[m]
-                   if "random_walk_sr" in s["eval"]), {})
+    chance: dict[str, Any] = next((s["eval"] for m in comp.methods for s in stats_by_stage[m]
+                                   if "random_walk_sr" in s["eval"]), {})
     if chance:
         lines += [f"Chance on this task (exact, DP over the lattice): a uniform random walk "
                   f"succeeds **{chance['random_walk_sr']:.3f}** of the time from the start "
@@ -319,7 +319,7 @@ def _parent_sections(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
             continue
         st = cfg.stages[p]
         ev = [s["eval"] for s in stats]
-        chance = next((e for e in ev if "random_walk_sr" in e), {})
+        chance: dict[str, Any] = next((e for e in ev if "random_walk_sr" in e), {})
         children = [m for m in comp.methods if cfg.stages[m].init == p]
         zs = [r["eval"]["zero_shot"]["greedy_sr"] for m in children
               for r in record["methods"][m]["runs"] if r["eval"].get("zero_shot")]

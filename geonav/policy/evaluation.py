@@ -180,7 +180,7 @@ def evaluate_both(policy: ActorCritic | Actor, env: Any, *,
                  threads=threads)
     s = evaluate(policy, env, frozen=frozen, starts=starts, greedy=False, seed=seed,
                  threads=threads)
-    row = {"starts": len(starts)}
+    row: dict[str, float] = {"starts": len(starts)}
     for name, res in (("greedy", g), ("sampled", s)):
         row[f"{name}_sr"] = round(res.success_rate, 6)
         row[f"{name}_spl"] = round(res.spl, 6)
