@@ -64,3 +64,37 @@ def test_evaluate_both_reports_greedy_and_sampled(env):
     assert row["greedy_sr"] == 1.0 and row["sampled_sr"] == 1.0
     assert row["greedy_length_ratio"] == pytest.approx(1.0)
     assert np.isfinite(row["greedy_spl"])
+
+
+@pytest.mark.parametrize("encoder", ["random", "cnn"])
+def test_lockstep_greedy_equals_the_reference_evaluation(encoder):
+    import functools
+
+    import torch
+
+    from geonav.camera import Camera
+    from geonav.policy.a3c import train_a3c
+    from geonav.policy.config import A3CConfig
+    from geonav.policy.encoders import build_frozen_encoder
+    from geonav.policy.evaluation import evaluate_lockstep
+    from geonav.policy.testing import _scene, tiny_net
+
+    scene = _scene(0)
+    ts = tiny_taskset(scene, alt_m=75.0, cells=5, max_steps=12, target=(2, 2))
+    factory = functools.partial(GeoNavEnv, scene, ts, camera=Camera(32, 90.0))
+    env = factory()
+    torch.manual_seed(0)
+    res = train_a3c(factory, tiny_net(encoder), A3CConfig(episodes=40, workers=0, lr=1e-3,
+                                                          seed=0, eval_every=0))
+    frozen = build_frozen_encoder(res.model.cfg)
+    starts = all_starts(env)
+    ref = evaluate(res.model, env, frozen=frozen, starts=starts, greedy=True)
+    fast = evaluate_lockstep(res.model, env, starts, frozen=frozen, greedy=True)
+    key = ("start", "success", "length", "collisions", "actions")
+    assert [{k: r[k] for k in key} for r in fast.episodes] == \
+        [{k: r[k] for k in key} for r in ref.episodes]
+    assert fast.success_rate == ref.success_rate and fast.spl == pytest.approx(ref.spl)
+    sampled = evaluate_lockstep(res.model, env, starts, frozen=frozen, greedy=False, seed=1)
+    again = evaluate_lockstep(res.model, env, starts, frozen=frozen, greedy=False, seed=1)
+    assert len(sampled.episodes) == len(starts)
+    assert [r["actions"] for r in sampled.episodes] == [r["actions"] for r in again.episodes]

@@ -6,6 +6,7 @@ shortest path from the start and p_i the steps taken.
 
 from __future__ import annotations
 
+import weakref
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -169,17 +170,24 @@ EVAL_FIELDS = ("episode", "env_steps", "elapsed_s", "starts", "greedy_sr", "gree
 def evaluate_both(policy: ActorCritic | Actor, env: Any, *,
                   frozen: FrozenEncoder | None = None, max_starts: int | None = 100,
                   seed: int = 0, threads: int | None = 1) -> dict[str, Any]:
-    """Greedy and sampled evaluation from every start cell (ALGORITHMS.md (f)).
+    """Greedy and sampled evaluation from every start cell (ALGORITHMS.md (f)); an
+    :class:`ActorCritic` on a GeoNavEnv is evaluated in lock-step (:func:`evaluate_lockstep`).
 
     Returns:
         ``{"starts": n, "greedy": EvalResult, "sampled": EvalResult, "row": {...}}`` where
         ``row`` holds the ``EVAL_FIELDS`` figures (without episode/time columns).
     """
     starts = all_starts(env, max_starts, seed)
-    g = evaluate(policy, env, frozen=frozen, starts=starts, greedy=True, seed=seed,
-                 threads=threads)
-    s = evaluate(policy, env, frozen=frozen, starts=starts, greedy=False, seed=seed,
-                 threads=threads)
+    if isinstance(policy, ActorCritic) and hasattr(env.unwrapped, "task_maps"):
+        g = evaluate_lockstep(policy, env, starts, frozen=frozen, greedy=True, seed=seed,
+                              threads=threads)
+        s = evaluate_lockstep(policy, env, starts, frozen=frozen, greedy=False, seed=seed,
+                              threads=threads)
+    else:
+        g = evaluate(policy, env, frozen=frozen, starts=starts, greedy=True, seed=seed,
+                     threads=threads)
+        s = evaluate(policy, env, frozen=frozen, starts=starts, greedy=False, seed=seed,
+                     threads=threads)
     row: dict[str, float] = {"starts": len(starts)}
     for name, res in (("greedy", g), ("sampled", s)):
         row[f"{name}_sr"] = round(res.success_rate, 6)
@@ -187,3 +195,88 @@ def evaluate_both(policy: ActorCritic | Actor, env: Any, *,
         row[f"{name}_length_ratio"] = round(length_ratio(res.episodes), 6)
         row[f"{name}_collisions"] = round(res.mean_collisions, 6)
     return {"starts": len(starts), "greedy": g, "sampled": s, "row": row}
+
+
+# -- lock-step evaluation: every start at once (one batched forward per step) --------------
+
+_TABLES: weakref.WeakKeyDictionary[Any, dict[Any, Any]] = weakref.WeakKeyDictionary()
+"""Per env: its view tables (images, and features per frozen encoder), built once."""
+
+
+def _view_table(env: Any, frozen: FrozenEncoder | None) -> Any:
+    import torch
+
+    from geonav.vecenv import LatticeVecEnv
+
+    u = env.unwrapped
+    cache = _TABLES.setdefault(u, {})
+    if "images" not in cache:
+        cache["images"] = torch.from_numpy(LatticeVecEnv(u, 1).image_table())
+    if frozen is None:
+        return cache["images"]
+    key = id(frozen)
+    if key not in cache:
+        images = cache["images"]
+        cache[key] = torch.cat([frozen.encode(images[i:i + 256])
+                                for i in range(0, len(images), 256)])
+    return cache[key]
+
+
+def evaluate_lockstep(model: ActorCritic, env: Any, starts: list[Start], *,
+                      frozen: FrozenEncoder | None = None, greedy: bool = True,
+                      seed: int = 0, threads: int | None = 1) -> EvalResult:
+    """:func:`evaluate` of an :class:`ActorCritic` from ``starts``, all episodes stepped
+    together through :class:`geonav.vecenv.LatticeVecEnv` (GeoNavEnv's exact semantics)
+    with one batched forward per step. Greedy results equal :func:`evaluate`'s; sampled
+    actions come from one seeded torch generator, so they are a different (equally
+    valid) draw. The previous-view slot is zero-filled, as in :func:`evaluate`."""
+    import torch
+
+    from geonav.vecenv import LatticeVecEnv
+
+    if not starts:
+        return EvalResult(float("nan"), float("nan"), float("nan"), float("nan"), greedy)
+    was_training = model.training
+    model.eval()
+    table = _view_table(env, frozen)
+    venv = LatticeVecEnv(env.unwrapped, len(starts))
+    venv.reset(tasks=[ti for ti, _ in starts], starts=[c for _, c in starts])
+    b = len(starts)
+    records: list[dict[str, Any] | None] = [None] * b
+    actions: list[list[int]] = [[] for _ in range(b)]
+    gen = torch.Generator().manual_seed(int(seed))
+    with torch_threads(threads), torch.inference_mode():
+        target = model.features(table[torch.from_numpy(venv.target_index)])
+        state = model.initial_state(b)
+        active = np.ones(b, bool)
+        while active.any():
+            obs = table[torch.from_numpy(venv.view_index)].unsqueeze(0)   # (1, B, ...)
+            logits, _, state = model(obs, target, state)
+            if greedy:
+                a = logits[0].argmax(-1)
+            else:
+                a = torch.multinomial(torch.softmax(logits[0], -1), 1, generator=gen)[:, 0]
+            a_np = a.numpy()
+            for s in np.nonzero(active)[0].tolist():
+                actions[s].append(int(a_np[s]))
+            res = venv.step(a_np, autoreset=False)
+            for f in res.final:
+                s = f["slot"]
+                if not active[s]:
+                    continue  # a finished slot keeps moving; only its first end counts
+                active[s] = False
+                ti, cell = starts[s]
+                records[s] = {"task": f["task"], "task_index": ti, "start": list(cell),
+                              "return": f["return"], "length": f["length"],
+                              "success": f["success"],
+                              "spl": spl(f["success"], f["shortest_path"], f["length"]),
+                              "collisions": f["collisions"],
+                              "shortest_path": f["shortest_path"], "actions": actions[s]}
+    if was_training:
+        model.train()
+    recs = [r for r in records if r is not None]
+    n = max(len(recs), 1)
+    return EvalResult(
+        success_rate=sum(r["success"] for r in recs) / n, spl=sum(r["spl"] for r in recs) / n,
+        mean_length=sum(r["length"] for r in recs) / n,
+        mean_collisions=sum(r["collisions"] for r in recs) / n, greedy=greedy, episodes=recs)
