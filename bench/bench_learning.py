@@ -133,17 +133,37 @@ def run_geonav(algo: str, scene: str, tasks: str, steps: int, seed: int,
                     return False
             return False if state["steps"] >= steps else None
 
+    engine = "async"
+    if algo.endswith("-batched"):
+        algo, engine = algo[: -len("-batched")], "batched"
     opts: dict[str, Any] = {"episodes": 10 ** 7, "workers": 0, "seed": seed, "lr": args.lr,
                             "eval_every": 0, "eval_max_starts": args.max_starts}
     if algo == "isar":
         opts["alpha"] = args.alpha
-    cfg = base_config(algo, opts)
-    trainer = trainer_class(algo)(factory, NetConfig(obs_size_px=n_px), cfg,
-                                  callbacks=[Budget()], keep_records=False, tensorboard=False)
+    if algo == "ppo":
+        from geonav.policy.batched.ppo import PPOConfig
+        from geonav.policy.config import from_dict
+
+        opts.pop("lr")  # PPO's own default
+        cfg = from_dict(PPOConfig, opts)
+        engine = "batched"
+    else:
+        cfg = base_config(algo, opts)
+    if engine == "batched":
+        from geonav.policy.engine import build_trainer
+
+        trainer = build_trainer(algo, "batched", factory, NetConfig(obs_size_px=n_px), cfg,
+                                callbacks=[Budget()], keep_records=False)
+    else:
+        trainer = trainer_class(algo)(factory, NetConfig(obs_size_px=n_px), cfg,
+                                      callbacks=[Budget()], keep_records=False)
     t0 = time.perf_counter()
     trainer.train()
     train_s = time.perf_counter() - t0 - trainer.eval_s
-    return _summary(evals, train_s, args.threshold, steps_done=state["steps"])
+    out = _summary(evals, train_s, args.threshold, steps_done=state["steps"])
+    choice = getattr(trainer, "engine_choice", None)
+    out["engine"] = choice.engine if choice is not None else "async"
+    return out
 
 
 class _Result:
@@ -182,7 +202,10 @@ def _med(vals: list[float | None], spec: str = ".0f") -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scene"), ap.add_argument("--tasks")
-    ap.add_argument("--methods", default="ppo,a3c,isar,savn")
+    ap.add_argument("--methods", default="sb3-ppo,a3c,isar,savn",
+                    help="sb3-ppo (Stable-Baselines3), a3c, isar, savn (the async reference "
+                    "trainers), geonav-ppo (geonav's PPO, batched engine), a3c-batched, "
+                    "isar-batched (batched engine, default batch)")
     ap.add_argument("--steps", type=int, default=32768, help="env steps per run")
     ap.add_argument("--seeds", default="0,1,2")
     ap.add_argument("--eval-every", type=int, default=2048, help="env steps between evals")
@@ -214,7 +237,7 @@ def main() -> None:
     for method in args.methods.split(","):
         runs = []
         for seed in seeds:
-            if method == "ppo":
+            if method == "sb3-ppo" or method == "ppo":
                 try:
                     import stable_baselines3  # noqa: F401
                 except ImportError:
@@ -222,9 +245,11 @@ def main() -> None:
                     break
                 r = run_ppo(scene, tasks, args.steps, seed, args)
             else:
-                r = run_geonav(method, scene, tasks, args.steps, seed, args)
+                algo = "ppo" if method == "geonav-ppo" else method
+                r = run_geonav(algo, scene, tasks, args.steps, seed, args)
             runs.append(r)
-            print(f"  {method} seed {seed}: greedy SR >= {args.threshold} after "
+            print(f"  {method} seed {seed} ({r.get('engine', 'sb3')} engine): greedy SR >= "
+                  f"{args.threshold} after "
                   f"{r['steps_to_thr']} steps / {r['episodes_to_thr']} episodes; final greedy "
                   f"{r['final']['greedy_sr']}, sampled {r['final']['sampled_sr']}; "
                   f"{r['steps_per_s']:.0f} steps/s", flush=True)
