@@ -408,6 +408,7 @@ class A3CTrainer:
         """Seconds spent in periodic evaluation by this call of :meth:`train`."""
         if self.ckpt is not None and self.out_dir is not None:
             truncate_csv(self.out_dir / "eval.csv", self.start_episode)
+            truncate_csv(self.out_dir / "metrics.csv", self.start_episode)  # no duplicate rows
 
     # -- hooks for the algorithms built on this trainer (SAVN, ISAR) ----------------------
     def build_optimizer(self, params: list[torch.Tensor]) -> torch.optim.Optimizer:
