@@ -90,3 +90,16 @@ def test_resume_from_an_earlier_checkpoint_drops_the_later_rows(scene_files, tmp
     steps = [int(r["env_steps"]) for r in rows]
     assert steps == list(np.cumsum([int(r["length"]) for r in rows]))
     assert [int(r["episode"]) for r in read_metrics(run / "eval.csv")] == [4, 8]
+
+
+def test_resume_across_engines(scene_files, tmp_path):
+    """A batched checkpoint resumes on the single-process async engine and back (each
+    engine starts its own random streams from the other's checkpoint)."""
+    run = tmp_path / "r"
+    assert _run(_base(scene_files, run, "a3c")) == 0
+    latest = str(run / "checkpoints" / "latest.pt")
+    for episodes, engine in (("8", ["--engine", "async", "--workers", "0"]), ("10", [])):
+        argv = _base(scene_files, run, "a3c") + engine + ["--resume", latest]
+        argv[argv.index("--episodes") + 1] = episodes
+        assert _run(argv) == 0
+    assert len((run / "metrics.csv").read_text().splitlines()) == 1 + 10

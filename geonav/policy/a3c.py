@@ -396,7 +396,11 @@ class A3CTrainer:
             if self.ckpt.optimizer_state is not None:
                 self.optimizer.load_state_dict(self.ckpt.optimizer_state)
             self.start_episode = self.ckpt.episodes
-            self.rng_state = self.ckpt.rng
+            rng = self.ckpt.rng
+            # another engine's random streams do not fit this one's (resume across engines)
+            if rng is None or (rng.get("engine") == "batched") == \
+                    (getattr(self, "engine", None) == "batched"):
+                self.rng_state = rng
         self.model.share_memory()
         for m in self.aux.values():
             m.share_memory()
