@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
+import numpy as np
 import pytest
 import torch
 
@@ -71,3 +72,34 @@ def test_isar_with_the_trainable_cnn_falls_back_to_async(scene_files, tmp_path):
     config = json.loads((run / "config.json").read_text())
     assert config["engine"]["name"] == "async" and "frozen encoder" in \
         config["engine"]["fallback_reason"]
+
+
+def test_resume_from_an_earlier_checkpoint_drops_the_later_rows(scene_files, tmp_path):
+    """metrics.csv and eval.csv keep no row logged after the resumed checkpoint, so the
+    running env_steps column counts each episode once."""
+    from geonav.policy.callbacks import read_metrics
+
+    run, toml = tmp_path / "r", tmp_path / "c.toml"
+    toml.write_text("[a3c]\nkeep_checkpoints = true\ncheckpoint_every = 4\neval_every = 4\n")
+    argv = _base(scene_files, run, "a3c") + ["--config", str(toml)]
+    argv[argv.index("--episodes") + 1] = "8"
+    assert _run(argv) == 0
+    assert _run(argv + ["--resume", str(run / "checkpoints" / "episode_4.pt")]) == 0
+    rows = read_metrics(run / "metrics.csv")
+    assert [int(r["episode"]) for r in rows] == list(range(1, 9))
+    steps = [int(r["env_steps"]) for r in rows]
+    assert steps == list(np.cumsum([int(r["length"]) for r in rows]))
+    assert [int(r["episode"]) for r in read_metrics(run / "eval.csv")] == [4, 8]
+
+
+def test_resume_across_engines(scene_files, tmp_path):
+    """A batched checkpoint resumes on the single-process async engine and back (each
+    engine starts its own random streams from the other's checkpoint)."""
+    run = tmp_path / "r"
+    assert _run(_base(scene_files, run, "a3c")) == 0
+    latest = str(run / "checkpoints" / "latest.pt")
+    for episodes, engine in (("8", ["--engine", "async", "--workers", "0"]), ("10", [])):
+        argv = _base(scene_files, run, "a3c") + engine + ["--resume", latest]
+        argv[argv.index("--episodes") + 1] = episodes
+        assert _run(argv) == 0
+    assert len((run / "metrics.csv").read_text().splitlines()) == 1 + 10

@@ -144,6 +144,18 @@ def test_tiny_experiment_end_to_end(tmp_path):
     assert flight["end_action"] == "land" and flight["disarmed"]
     steps = (root / "flight" / "flight.jsonl").read_text().strip().splitlines()
     assert flight["steps"] >= 1 and len(steps) >= flight["steps"]
+    # runs without evaluation rows (eval_every = 0) have no evaluation e*, not a censored
+    # one at their budget that the verdict would compare
+    for seed in (0, 1):
+        (root / f"units/scratch/seed-{seed}/eval.csv").unlink()
+    rep = subprocess.run(_geonav("experiment", "report", str(cfg), "--out", "runs",
+                                 cwd=tmp_path), cwd=tmp_path, capture_output=True, text=True,
+                         timeout=300)
+    assert rep.returncode == 0, rep.stderr[-3000:]
+    comp = json.loads((root / "summary.json").read_text())["comparisons"][0]
+    assert comp["methods"]["scratch"]["eval_convergence"]["n"] == 0
+    assert comp["methods"]["transfer"]["eval_convergence"]["n"] == 2
+    assert comp["eval_verdict"] == "no effect shown (runs missing)"
 
 
 def test_resume_after_kill_skips_finished_units(tmp_path):

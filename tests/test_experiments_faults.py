@@ -394,3 +394,36 @@ def test_local_worker_survives_the_sigterm_of_a_child_it_forked():
         backend.shutdown()
     assert r["pgid"] == r["pid"]  # the worker leads its own process group
     assert r["signal"] == signal.SIGTERM  # the child alone ended, as by default
+
+
+def test_resumed_unit_convergence_stop_sees_no_evaluation_after_the_checkpoint(
+        tmp_path, monkeypatch):
+    """stop_at_convergence on resume: the evaluations logged after the checkpoint are
+    dropped before the stop rule reads eval.csv (they are run again)."""
+    import shutil
+
+    from geonav.experiments import stages
+    from geonav.testing import textured_scene, tiny_taskset
+
+    scene = textured_scene(size_m=300.0)
+    scene.save(tmp_path / "scene")
+    tiny_taskset(scene, max_steps=10).save(tmp_path / "tasks.json")
+    seen = []
+
+    class Recording(stages.ConvergenceStop):
+        def on_train_end(self, result):
+            seen.append([e for e, _ in self.evals])
+
+    monkeypatch.setattr(stages, "ConvergenceStop", Recording)
+    out = tmp_path / "unit"
+    p = dict(stage="s", mode="train", algo="a3c", episodes=8, workers=0, seed=0,
+             scene=str(tmp_path / "scene"), tasks=str(tmp_path / "tasks.json"),
+             init_checkpoint=None, out_dir=str(out), eval_starts=3,
+             convergence=dict(window=50, threshold=0.99, hold=0.99, eval_threshold=1.0),
+             options=dict(encoder="random", batch=2, eval_every=2,
+                          checkpoint_every=4, keep_checkpoints=True, eval_max_starts=3,
+                          stop_at_convergence=True))
+    stages.execute_stage(p)
+    shutil.copy(out / "checkpoints" / "episode_4.pt", out / "checkpoints" / "latest.pt")
+    stages.execute_stage(p)
+    assert seen == [[2, 4, 6, 8], [2, 4, 6, 8]]

@@ -120,3 +120,18 @@ def test_tensorboard_tags_are_the_ones_sb3_writes(scene, tmp_path):
               "train/policy_loss", "train/value_loss", "train/entropy_loss"}
     assert shared <= sb3_tags and shared <= ours
 
+
+
+def test_tensorboard_eval_axis_spans_runs(tmp_path):
+    """One callback over several trainers (curriculum stages): a later stage's evaluation
+    (its own env_steps restart at 0) is drawn at the callback's running total."""
+    pytest.importorskip("tensorboard", reason="needs the tensorboard extra")
+    tb = tensorboard_callback(tmp_path / "tb", required=True)
+    stage0, stage1 = _records(3), _records(2)
+    for r in stage0 + stage1:
+        tb.on_episode(r)
+    tb.on_eval(dict(episode=2, env_steps=stage1[-1]["env_steps"], greedy_sr=0.5))
+    tb.on_train_end(None)
+    s = _scalars(tmp_path / "tb")
+    assert s["eval/success_rate"] == [(s["rollout/ep_len_mean"][-1][0], 0.5)]
+    assert s["eval/success_rate"][0][0] > stage1[-1]["env_steps"]

@@ -64,6 +64,41 @@ def test_train_resume_and_eval(scene_files, tmp_path, capsys):
     assert rows[0].startswith("episode,env_steps") and rows[-1].startswith("5,")
 
 
+def test_eval_prints_strict_json_without_successes(scene_files, tmp_path, capsys,
+                                                  monkeypatch):
+    """A policy that never succeeds has no length ratio: null in the JSON, not NaN."""
+    import math
+
+    from geonav.policy import evaluation
+
+    scene, tasks = scene_files
+    run = tmp_path / "run"
+    args = _parse(["train", "--scene", str(scene), "--tasks", str(tasks), "--out", str(run),
+                   "--obs-size", "32", "--encoder", "random", "--no-progress",
+                   "--episodes", "2", "--batch", "2"])
+    assert args.handler(args) == 0
+    real = evaluation.evaluate_both
+
+    def never(*a, **kw):  # the real evaluation, as a policy without successes reports it
+        res = real(*a, **kw)
+        res["row"]["greedy_length_ratio"] = math.nan
+        return res
+
+    monkeypatch.setattr(evaluation, "evaluate_both", never)
+    out = tmp_path / "eval.json"
+    args = _parse(["eval", str(run / "checkpoints/final.pt"), "--scene", str(scene),
+                   "--tasks", str(tasks), "--max-starts", "3", "--json", str(out)])
+    capsys.readouterr()
+    assert args.handler(args) == 0
+
+    def strict(text):
+        return json.loads(text, parse_constant=lambda c: pytest.fail(f"{c} in JSON"))
+
+    assert strict(capsys.readouterr().out.strip().splitlines()[-1])["greedy"][
+        "length_ratio"] is None
+    assert strict(out.read_text())["greedy"]["length_ratio"] is None
+
+
 def test_bad_input_is_one_clear_error(scene_files, tmp_path, capsys):
     scene, tasks = scene_files
     bad = tmp_path / "bad.pt"

@@ -115,6 +115,11 @@ def _seed_stats(results: list[Any]) -> dict[str, Any] | None:
         return None
 
 
+def evaluated(stats: list[dict[str, Any]]) -> list[Any]:
+    """The evaluation e* of the runs that have periodic evaluation rows."""
+    return [s["eval_conv"] for s in stats if s["eval_conv"].evaluations > 0]
+
+
 def _fmt_iqm(st: dict[str, Any] | None) -> str:
     if not st or st.get("iqm") is None:
         return ""
@@ -236,7 +241,8 @@ def _comparison(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
     for m in comp.methods:
         stats = stats_by_stage[m]
         conv = summarize([s["conv"] for s in stats])
-        econv = summarize([s["eval_conv"] for s in stats])
+        # runs without evaluation rows (eval_every = 0, no eval.csv) have no evaluation e*
+        econv = summarize(evaluated(stats))
         conv_total = summarize([_with_parents(cfg, root, m, s) for s in stats]) \
             if comp.count_parents else None
         wall = _median([s["wall_to_convergence_s"] for s in stats])
@@ -249,7 +255,7 @@ def _comparison(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
         zs_med = _median(zs)
         ratio = _median([e.get("greedy_length_ratio") for e in ev])
         st_train = _seed_stats([s["conv"] for s in stats])
-        st_eval = _seed_stats([s["eval_conv"] for s in stats])
+        st_eval = _seed_stats(evaluated(stats))
         cell = _fmt_conv(conv) + _fmt_iqm(st_train)
         if conv_total is not None:
             cell += f" (incl. earlier stages: {_fmt_conv(conv_total)})"
@@ -286,8 +292,8 @@ def _comparison(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
             record["ratio" if rule == "train" else "eval_ratio"] = value
         for rule, key, label in (("train", "conv", "training-SR rule"),
                                  ("eval", "eval_conv", "greedy-evaluation rule")):
-            v = verdict(a, [s[key] for s in stats_by_stage[a]], b,
-                        [s[key] for s in stats_by_stage[b]])
+            pick = evaluated if key == "eval_conv" else (lambda st: [s["conv"] for s in st])
+            v = verdict(a, pick(stats_by_stage[a]), b, pick(stats_by_stage[b]))
             record["verdict" if rule == "train" else "eval_verdict"] = v
             lines += [f"**Verdict ({label}): {v}.**", ""]
     png = _plot_curves(cfg, comp, root, stats_by_stage, chance)

@@ -261,6 +261,7 @@ def execute_stage(p: dict[str, Any]) -> dict[str, Any]:
             (out / name).unlink(missing_ok=True)
     if resume is not None:
         truncate_metrics(out / "metrics.csv", resume)
+        truncate_metrics(out / "eval.csv", resume)  # before ConvergenceStop reads it
     env_factory = EnvFactory(p["scene"], p["tasks"])
     callbacks: list[Any] = [ProgressFile(out / "progress.json")]
     p = dict(p, options=dict(p["options"]))

@@ -396,7 +396,11 @@ class A3CTrainer:
             if self.ckpt.optimizer_state is not None:
                 self.optimizer.load_state_dict(self.ckpt.optimizer_state)
             self.start_episode = self.ckpt.episodes
-            self.rng_state = self.ckpt.rng
+            rng = self.ckpt.rng
+            # another engine's random streams do not fit this one's (resume across engines)
+            if rng is None or (rng.get("engine") == "batched") == \
+                    (getattr(self, "engine", None) == "batched"):
+                self.rng_state = rng
         self.model.share_memory()
         for m in self.aux.values():
             m.share_memory()
@@ -408,6 +412,7 @@ class A3CTrainer:
         """Seconds spent in periodic evaluation by this call of :meth:`train`."""
         if self.ckpt is not None and self.out_dir is not None:
             truncate_csv(self.out_dir / "eval.csv", self.start_episode)
+            truncate_csv(self.out_dir / "metrics.csv", self.start_episode)  # no duplicate rows
 
     # -- hooks for the algorithms built on this trainer (SAVN, ISAR) ----------------------
     def build_optimizer(self, params: list[torch.Tensor]) -> torch.optim.Optimizer:

@@ -152,7 +152,8 @@ class TensorBoardMetrics(Callback):
         ``eval/length_ratio``; the sampled policy's under ``eval/sampled_*``; and
         ``eval/mean_reward``, ``eval/mean_ep_length`` when the row has them.
         """
-        x = int(row.get("env_steps") or self.env_steps)
+        # the run's total, or this callback's when it spans several runs (curriculum stages)
+        x = max(int(row.get("env_steps") or 0), self.env_steps)
         for tag, key in (("eval/success_rate", "greedy_sr"), ("eval/spl", "greedy_spl"),
                          ("eval/length_ratio", "greedy_length_ratio"),
                          ("eval/collisions", "greedy_collisions"),

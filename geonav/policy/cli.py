@@ -184,14 +184,25 @@ def run_eval(args: argparse.Namespace) -> int:
     print(f"{res['starts']} starts: greedy SR {g['sr']:.3f} SPL {g['spl']:.3f} | sampled SR "
           f"{s['sr']:.3f} SPL {s['spl']:.3f} | chance: random walk {chance['random_walk_sr']:.3f},"
           f" best state-blind {chance['blind_sr']:.3f}", file=sys.stderr)
-    print(json.dumps(summary))
+    print(json.dumps(_no_nan(summary)))
     if args.json:
         out = Path(args.json)
         tmp = out.with_name(f".{out.name}.tmp")
         per = {"greedy": res["greedy"].episodes, "sampled": res["sampled"].episodes}
-        tmp.write_text(json.dumps({**summary, "per_episode": per}, indent=1))
+        tmp.write_text(json.dumps(_no_nan({**summary, "per_episode": per}), indent=1))
         os.replace(tmp, out)
     return 0
+
+
+def _no_nan(obj: Any) -> Any:
+    """``obj`` with NaN floats (a length ratio without successes) as None: strict JSON."""
+    if isinstance(obj, float) and obj != obj:
+        return None
+    if isinstance(obj, dict):
+        return {k: _no_nan(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_no_nan(v) for v in obj]
+    return obj
 
 
 def main(argv: list[str] | None = None) -> int:
