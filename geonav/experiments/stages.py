@@ -271,7 +271,14 @@ def execute_stage(p: dict[str, Any]) -> dict[str, Any]:
         tb = tensorboard_callback(out / "tb", required=True)
         if tb is not None:
             callbacks.append(tb)
-    if p["options"].pop("stop_at_convergence", False) and p["mode"] != "curriculum":
+    stop = p["options"].pop("stop_at_convergence", False)
+    if stop and int(p["options"].get("eval_every", -1)) == 0:
+        raise ConfigError(f"stage {p.get('stage')!r}: stop_at_convergence needs the greedy "
+                          "evaluations of both convergence rules; remove eval_every = 0")
+    if stop and p["mode"] == "curriculum":
+        log.warning("stage %r: stop_at_convergence does not apply to a curriculum unit (its "
+                    "stages end on the criterion themselves)", p.get("stage"))
+    if stop and p["mode"] != "curriculum":
         from geonav.convergence import ConvergenceCriterion
         from geonav.policy.callbacks import read_metrics
 
