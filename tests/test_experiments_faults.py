@@ -15,6 +15,8 @@ import time
 from pathlib import Path
 
 import pytest
+from proc_helpers import alive as _alive
+from proc_helpers import tree as _tree
 
 from geonav.errors import ConfigError
 from geonav.experiments.backend import LocalBackend
@@ -76,31 +78,6 @@ def _load(path: Path):
     return parse_config(tomllib.loads(path.read_text()), str(path))
 
 
-def _alive(pid: int) -> bool:
-    """True while any thread of ``pid`` runs (its files, locks included, are released
-    only when the last thread has exited, which can be after the leader is a zombie)."""
-    for task in Path(f"/proc/{pid}/task").glob("*"):
-        try:
-            state = (task / "stat").read_text().rsplit(")", 1)[1].split()[0]
-        except (FileNotFoundError, ProcessLookupError, IndexError):
-            continue
-        if state not in ("Z", "X"):
-            return True
-    return False
-
-
-def _tree(pid: int) -> list[int]:
-    """``pid`` and all its descendants (from /proc, whatever their process group)."""
-    out, todo = [], [pid]
-    while todo:
-        p = todo.pop()
-        out.append(p)
-        for task in Path(f"/proc/{p}/task").glob("*"):
-            try:
-                todo += [int(c) for c in (task / "children").read_text().split()]
-            except (FileNotFoundError, ProcessLookupError):
-                continue
-    return out
 
 
 def _episodes(metrics: Path) -> list[int]:

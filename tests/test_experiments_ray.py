@@ -23,6 +23,9 @@ os.environ.update(RAY_ENV)
 
 ray = pytest.importorskip("ray", reason="the Ray backend needs ray: pip install 'geonav[ray]'")
 
+from proc_helpers import alive as _alive  # noqa: E402
+from proc_helpers import tree as _tree  # noqa: E402
+
 from geonav.experiments.backend import LocalBackend, RayBackend  # noqa: E402
 from geonav.experiments.config import load_config  # noqa: E402
 from geonav.experiments.runner import read_lock, run_experiment, unit_lock  # noqa: E402
@@ -217,27 +220,3 @@ def test_killed_driver_leaves_nothing_running_on_the_cluster(tmp_path, ray_clust
         log.close()
 
 
-def _alive(pid: int) -> bool:
-    """True while any thread of ``pid`` runs (its files, locks included, are released
-    only when the last thread has exited, which can be after the leader is a zombie)."""
-    for task in Path(f"/proc/{pid}/task").glob("*"):
-        try:
-            state = (task / "stat").read_text().rsplit(")", 1)[1].split()[0]
-        except (FileNotFoundError, ProcessLookupError, IndexError):
-            continue
-        if state not in ("Z", "X"):
-            return True
-    return False
-
-
-def _tree(pid: int) -> list[int]:
-    out, todo = [], [pid]
-    while todo:
-        p = todo.pop()
-        out.append(p)
-        for task in Path(f"/proc/{p}/task").glob("*"):
-            try:
-                todo += [int(c) for c in (task / "children").read_text().split()]
-            except (FileNotFoundError, ProcessLookupError):
-                continue
-    return out

@@ -10,11 +10,14 @@ import sys
 import textwrap
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
+from flight_helpers import FAST as BASE_FAST
+from flight_helpers import META, START, TARGET
 
 from geonav.errors import ConfigError, FlightTimeout
 from geonav.mavlink_bridge import modes as M
@@ -35,21 +38,8 @@ from geonav.scene import Scene
 from geonav.tasks import Lattice
 from geonav.testing import textured_scene
 
-META = {"obs_size_px": 32, "alt_m": 10.0, "step_m": 5.0, "fov_deg": 90.0}
-START, TARGET = (5, 5), (7, 6)
 GEONAV = 255  # the pymavlink backend's source system id
-FAST = Timeouts(
-    connect_s=10,
-    ready_s=10,
-    position_s=10,
-    command_s=3.0,
-    mode_s=8,
-    arm_s=8,
-    arm_retry_s=0.3,
-    takeoff_s=15,
-    landing_s=20,
-    dead_link_s=2.0,
-)
+FAST = replace(BASE_FAST, dead_link_s=2.0)
 
 
 @pytest.fixture(scope="module")

@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from flight_helpers import FAST, META, START, TARGET
 
 from geonav.mavlink_bridge import modes as M
 from geonav.mavlink_bridge.emulator import Emulator, EmulatorConfig
@@ -18,21 +19,6 @@ from geonav.mavlink_bridge.sequence import Timeouts
 from geonav.mavlink_bridge.vehicle import open_vehicle
 from geonav.tasks import Lattice
 from geonav.testing import textured_scene
-
-META = {"obs_size_px": 32, "alt_m": 10.0, "step_m": 5.0, "fov_deg": 90.0}
-START, TARGET = (5, 5), (7, 6)
-# Upper bounds only: a passing flight never waits them out.
-FAST = Timeouts(
-    connect_s=10,
-    ready_s=10,
-    position_s=10,
-    command_s=3.0,
-    mode_s=8,
-    arm_s=8,
-    arm_retry_s=0.3,
-    takeoff_s=15,
-    landing_s=20,
-)
 
 
 @pytest.fixture(scope="module")
