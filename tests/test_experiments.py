@@ -239,3 +239,11 @@ def test_shipped_configs_parse():
         assert cfg.compare and cfg.stages
         for part in cfg.parts():
             assert cfg.stages_for([part])
+
+
+def test_paper_tasks_are_not_solved_by_chance():
+    """Issue 12: every task set of the paper protocol keeps only targets from which a
+    random walk succeeds at most 5 % of the time (the sampler enforces the cap)."""
+    cfg = load_config(Path(__file__).resolve().parent.parent / "configs" / "paper.toml")
+    for key, spec in cfg.tasks.items():
+        assert spec.max_random_walk is not None and spec.max_random_walk <= 0.05, key

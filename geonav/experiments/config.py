@@ -100,6 +100,10 @@ class TaskSpec:
         obs_size_px: camera image side.
         margin_alt_m: keep regions inside the imagery with this altitude's view margin.
         seed: sampler seed.
+        fov_deg: camera field of view (degrees, square image).
+        max_overlap: meta-task regions overlap each other by at most this area fraction.
+        max_random_walk: keep only targets from which a uniform random walk succeeds at
+            most this often (per task; None: any target). Issue 12 asks for 0.05.
     """
 
     name: str
@@ -115,6 +119,9 @@ class TaskSpec:
     obs_size_px: int = 84
     margin_alt_m: float | None = None
     seed: int = 0
+    fov_deg: float = 90.0
+    max_overlap: float = 0.5
+    max_random_walk: float | None = None
 
 
 @dataclass(frozen=True)
