@@ -133,6 +133,10 @@ class StageSpec:
         options: algorithm options passed through (N, K, lr, encoder, ...), and the
             trainer engine: ``engine`` ("batched", the default, or "async"), ``batch``
             (slots of the batched engine, default 16) and ``device`` ("cpu" or "cuda").
+            ``augment = {variants = 8, brightness = 0.2, contrast = 0.2, hue_deg = 15,
+            blur_px = 1.0, gsd_jitter = 0.1, seed = 0}`` (or ``true`` for those
+            defaults) trains on seeded imagery variants (:mod:`geonav.augment`); the
+            unit's evaluations stay on the clean imagery.
     """
 
     name: str
@@ -360,6 +364,10 @@ def _check(cfg: ExperimentConfig) -> None:
             raise ConfigError(f"[stages.{st.name}] init = {st.init!r} is not a stage")
         if st.episodes < 1:
             raise ConfigError(f"[stages.{st.name}] episodes must be >= 1")
+        if st.options.get("augment") not in (None, False, True):
+            from geonav.augment import AugmentConfig
+
+            AugmentConfig.from_dict(st.options["augment"], f"[stages.{st.name}] augment")
     for key in cfg.stages:  # no cycles
         seen, cur = set(), key
         while cur is not None:
