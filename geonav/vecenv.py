@@ -142,6 +142,7 @@ class LatticeVecEnv:
         self.ep_return = np.zeros(b, np.float64)
         self.collisions = np.zeros(b, np.int64)
         self._images: np.ndarray | None = None
+        self._clean: np.ndarray | None = None
 
     # -- tables -----------------------------------------------------------------------------
     def view_of(self, task_index: int, cell: tuple[int, int], variant: int = 0) -> int:
@@ -154,29 +155,59 @@ class LatticeVecEnv:
         return [(i, (x, y)) for i in range(self.n_tasks)
                 for x in range(int(self.nx[i])) for y in range(int(self.ny[i]))]
 
+    def _clean_table(self) -> np.ndarray:
+        """(n_cells, N, N, 3) uint8: the rendered views of variant 0's imagery (built once)."""
+        if self._clean is None:
+            n = self.env.camera.size_px
+            out = np.empty((self.n_cells, n, n, 3), np.uint8)
+            for v, (ti, cell) in enumerate(self.view_cells()):
+                out[v] = self.env.observation_at(ti, cell)
+            self._clean = out
+        return self._clean
+
     def image_table(self) -> np.ndarray:
         """(n_views, N, N, 3) uint8: the rendered view of every (task, cell) under every
         imagery variant, variant-major (built once)."""
         if self._images is None:
-            n, c = self.env.camera.size_px, self.n_cells
-            out = np.empty((self.n_views, n, n, 3), np.uint8)
-            for v, (ti, cell) in enumerate(self.view_cells()):
-                out[v] = self.env.observation_at(ti, cell)
-            if self.augment is not None:
-                clean = out[:c].copy()
+            clean, c = self._clean_table(), self.n_cells
+            if self.augment is None:
+                self._images = clean
+            else:
+                out = np.empty((self.n_views, *clean.shape[1:]), np.uint8)
                 for k in range(self.n_variants):
                     out[k * c:(k + 1) * c] = augment_images(clean, self.augment.params(k))
-            self._images = out
+                self._images = out
+                self._clean = None  # the variant copies replace it
         return self._images
 
     def feature_table(self, frozen: Any, chunk: int = 256) -> Any:
-        """(n_views, F) features of every view through a frozen encoder (a torch tensor)."""
+        """(n_views, F) features of every view through a frozen encoder (a torch tensor).
+
+        With imagery variants and no image table built yet, the variants are rendered and
+        encoded chunk by chunk, so only the clean images and the features stay in memory
+        (not V copies of the pixels)."""
         import torch
 
-        images = self.image_table()
-        parts = [frozen.encode(torch.from_numpy(images[i:i + chunk]))
-                 for i in range(0, self.n_views, chunk)]
-        return torch.cat(parts)
+        out: Any = None
+
+        def put(row: int, images: np.ndarray) -> None:
+            nonlocal out
+            f = frozen.encode(torch.from_numpy(images))
+            if out is None:  # filled in place: no list of parts and no torch.cat copy
+                out = torch.empty((self.n_views, *f.shape[1:]), dtype=f.dtype)
+            out[row:row + len(f)] = f
+
+        if self._images is not None or self.augment is None:
+            images = self.image_table()
+            for i in range(0, self.n_views, chunk):
+                put(i, images[i:i + chunk])
+            return out
+        clean, c = self._clean_table(), self.n_cells
+        for k in range(self.n_variants):
+            p = self.augment.params(k)
+            for i in range(0, c, chunk):
+                put(k * c + i, augment_images(clean[i:i + chunk], p))
+        return out
 
     @property
     def view_index(self) -> np.ndarray:

@@ -280,3 +280,18 @@ def test_cli_train_with_augment(files, tmp_path):
     json.loads((tmp_path / "run" / "config.json").read_text())
     with pytest.raises(SystemExit):
         parser.parse_args(base + ["--augment", "hue_deg=500"])
+
+
+def test_streamed_feature_table_equals_the_image_table_features(two_task_env):
+    import torch
+
+    from geonav.policy.config import NetConfig
+    from geonav.policy.encoders import build_frozen_encoder
+
+    frozen = build_frozen_encoder(NetConfig(encoder="random", obs_size_px=24))
+    cfg = AugmentConfig(variants=2, seed=4)
+    streamed = LatticeVecEnv(two_task_env, 1, augment=cfg).feature_table(frozen, chunk=16)
+    venv = LatticeVecEnv(two_task_env, 1, augment=cfg)
+    full = frozen.encode(torch.from_numpy(venv.image_table()))
+    assert streamed.shape == (3 * venv.n_cells, frozen.out_dim)
+    torch.testing.assert_close(streamed, full)
