@@ -154,10 +154,10 @@ def parse_augment(text: str) -> AugmentConfig:
     text = text.strip()
     if text.startswith("{"):
         try:
-            d = json.loads(text)
+            obj = json.loads(text)
         except json.JSONDecodeError as err:
             raise ConfigError(f"--augment {text!r} is not valid JSON: {err}") from err
-        return AugmentConfig.from_dict(d, "--augment")
+        return AugmentConfig.from_dict(obj, "--augment")
     d: dict[str, Any] = {}
     for item in filter(None, (s.strip() for s in text.split(","))):
         key, sep, value = item.partition("=")
@@ -208,7 +208,7 @@ def augment_image(image: np.ndarray, p: VariantParams) -> np.ndarray:
     array, equal to the input for the identity."""
     if p.is_identity:
         return np.array(image, np.uint8, copy=True)
-    x = np.asarray(image, np.float32)
+    x: Any = np.asarray(image, np.float32)
     n_h, n_w = x.shape[:2]
     if p.scale != 1.0:
         cx, cy = (n_w - 1) / 2.0, (n_h - 1) / 2.0

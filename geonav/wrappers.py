@@ -166,7 +166,7 @@ class ImageryRandomisation(gym.Wrapper[dict[str, np.ndarray], Any, dict[str, np.
         obs, info = self.env.reset(seed=seed, options=options or None)
         return self._apply(obs, info), info
 
-    def step(self, action: Any) -> tuple[dict[str, np.ndarray], float, bool, bool,
+    def step(self, action: Any) -> tuple[dict[str, np.ndarray], Any, bool, bool,
                                          dict[str, Any]]:
         obs, reward, terminated, truncated, info = self.env.step(action)
         return self._apply(obs, info), reward, terminated, truncated, info
