@@ -277,7 +277,8 @@ def test_cli_train_with_augment(files, tmp_path):
     assert args.augment == AugmentConfig(variants=2, hue_deg=20)
     assert args.handler(args) == 0
     assert len((tmp_path / "run" / "metrics.csv").read_text().splitlines()) == 1 + 4
-    json.loads((tmp_path / "run" / "config.json").read_text())
+    config = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert config["augment"] == AugmentConfig(variants=2, hue_deg=20).to_dict()
     with pytest.raises(SystemExit):
         parser.parse_args(base + ["--augment", "hue_deg=500"])
 
