@@ -130,6 +130,7 @@ def test_tiny_experiment_end_to_end(tmp_path):
         assert len(rec["runs"]) == 2 and all(r["episodes"] == 40 for r in rec["runs"])
     # what README's results table reads (geonav.experiments.table)
     assert comp["order"] == ["scratch", "transfer"] and comp["part"] == "transfer"
+    assert comp["claim"] == "transfer vs scratch"  # no claim label: the name
     assert comp["paper_ratio"] == pytest.approx(0.04)
     assert comp["compute_units"] == 6 and comp["compute_s"] > 0  # pre, scratch, transfer x 2
     readme = tmp_path / "README.md"

@@ -111,6 +111,14 @@ def test_censored_ratios_are_bounds(tmp_path):
     assert "<= 0.02 (transfer 100-150 vs scratch 5000-5000+)" in table.render_table(tmp_path)
 
 
+def test_claim_label_names_the_row(tmp_path):
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "summary.json").write_text(
+        json.dumps(_summary(SHOWN, SHOWN, PAPER, claim="5. transfer A -> B")))
+    assert "| [5. transfer A -> B](a/report.md) (`a`) |" in table.render_table(tmp_path,
+                                                                              tmp_path)
+
+
 def test_old_summaries_and_errors(tmp_path):
     s = _summary(NONE, NONE)
     comp = s["comparisons"][0]

@@ -159,6 +159,8 @@ class CompareSpec:
         methods: stage keys compared (episodes to convergence of each).
         paper: the paper's episodes to convergence per method, for the ratio column.
         count_parents: also report episodes including the stages each method starts from.
+        claim: the claim it tests, as README's results table names it (default: the name),
+            e.g. "5. transfer A -> B: 2K vs 50K episodes".
     """
 
     name: str
@@ -166,6 +168,7 @@ class CompareSpec:
     part: str = ""
     paper: dict[str, float] = field(default_factory=dict)
     count_parents: bool = False
+    claim: str = ""
 
 
 BACKENDS = ("local", "ray")

@@ -219,7 +219,8 @@ def _comparison(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
                 scenes: dict[str, str]) -> list[str]:
     crit = cfg.convergence
     lines = [f"## {comp.name}", ""]
-    record: dict[str, Any] = {"name": comp.name, "part": comp.part or comp.name,
+    record: dict[str, Any] = {"name": comp.name, "claim": comp.claim or comp.name,
+                              "part": comp.part or comp.name,
                               "order": list(comp.methods), "paper": dict(comp.paper),
                               "methods": {}}
     chance: dict[str, Any] = next((s["eval"] for m in comp.methods for s in stats_by_stage[m]

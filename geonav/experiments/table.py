@@ -136,7 +136,7 @@ def comparison_row(folder: Path, summary: dict[str, Any], comp: dict[str, Any],
     methods = comp.get("methods") or {}
     order = [m for m in (comp.get("order") or list(methods)) if m in methods]
     link = Path(os.path.relpath(folder / "report.md", link_base)).as_posix()
-    claim = f"[{comp['name']}]({link}) (`{folder.name}`)"
+    claim = f"[{comp.get('claim') or comp['name']}]({link}) (`{folder.name}`)"
     if len(order) < 2:
         return f"| {claim} | n/a | n/a | n/a | one method only | {_compute(comp, order)} |"
     a, b = order[:2]
