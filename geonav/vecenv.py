@@ -156,7 +156,7 @@ class LatticeVecEnv:
                 for x in range(int(self.nx[i])) for y in range(int(self.ny[i]))]
 
     def _clean_table(self) -> np.ndarray:
-        """(n_cells, N, N, 3) uint8: the rendered views of variant 0's imagery (built once)."""
+        """(n_cells, N, N, 3) uint8: the rendered views of the clean imagery (built once)."""
         if self._clean is None:
             n = self.env.camera.size_px
             out = np.empty((self.n_cells, n, n, 3), np.uint8)
