@@ -262,9 +262,13 @@ def execute_stage(p: dict[str, Any]) -> dict[str, Any]:
     if resume is not None:
         truncate_metrics(out / "metrics.csv", resume)
         truncate_metrics(out / "eval.csv", resume)  # before ConvergenceStop reads it
-    env_factory = EnvFactory(p["scene"], p["tasks"])
-    callbacks: list[Any] = [ProgressFile(out / "progress.json")]
     p = dict(p, options=dict(p["options"]))
+    augment = stage_augment(p["options"].pop("augment", None), p.get("stage"))
+    clean_factory = EnvFactory(p["scene"], p["tasks"])
+    # training sees the randomised imagery; every evaluation below sees the clean one
+    env_factory = clean_factory if augment is None else \
+        EnvFactory(p["scene"], p["tasks"], augment=augment)
+    callbacks: list[Any] = [ProgressFile(out / "progress.json")]
     if p["options"].pop("tensorboard", False):  # stage option: TensorBoard under SB3's tags
         from geonav.policy.callbacks import tensorboard_callback
 
@@ -290,7 +294,7 @@ def execute_stage(p: dict[str, Any]) -> dict[str, Any]:
         crit = ConvergenceCriterion(**p["convergence"])
         callbacks.append(ConvergenceStop(crit, before, evals_before))
     model, episodes, checkpoint = TRAINERS[key](p, env_factory, callbacks, resume)
-    metrics, offset, eval_factory = out / "metrics.csv", 0, env_factory
+    metrics, offset, eval_factory = out / "metrics.csv", 0, clean_factory
     evals = out / "eval.csv"
     if p["mode"] == "curriculum":
         # Convergence is judged on the last (lowest) stage; the earlier stages of the
@@ -306,6 +310,18 @@ def execute_stage(p: dict[str, Any]) -> dict[str, Any]:
                 episodes=int(episodes), episodes_before_metrics=offset, checkpoint=checkpoint,
                 metrics=str(metrics), evals=str(evals), scene=p["scene"], tasks=p["tasks"],
                 eval=evaluation, trajectories=trajectories)
+
+
+def stage_augment(value: Any, stage: Any = None) -> Any:
+    """A stage's ``augment`` option (a table of :class:`geonav.augment.AugmentConfig`
+    fields) validated, or None when absent or false; ConfigError names the stage."""
+    if value is None or value is False:
+        return None
+    from geonav.augment import AugmentConfig
+
+    if value is True:
+        return AugmentConfig()
+    return AugmentConfig.from_dict(value, f"[stages.{stage}] augment")
 
 
 def truncate_metrics(metrics_csv: Path, checkpoint: str) -> None:
