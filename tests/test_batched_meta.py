@@ -1,14 +1,23 @@
-"""Batched meta-training (SAVN base, E = 1): the reference MetaTrainer's meta update."""
+"""Batched meta-training (E = 1): the reference MetaTrainer's meta update, learning, resume."""
 
 import functools
 from dataclasses import replace
 
+import numpy as np
+import pytest
 import torch
+from test_meta_training import multi_task_factory
 
 from geonav.env import GeoNavEnv
+from geonav.policy import a3c as a3c_mod
+from geonav.policy import encoders
+from geonav.policy import isar as isar_mod
+from geonav.policy.batched import meta as meta_mod
 from geonav.policy.batched.meta import BatchedMetaSAVN
-from geonav.policy.meta import MetaTrainer
-from geonav.policy.meta_config import MetaConfig, SAVNConfig
+from geonav.policy.config import A3CConfig
+from geonav.policy.engine import build_meta_trainer
+from geonav.policy.meta import MetaTrainer, TaskRunner
+from geonav.policy.meta_config import ISARConfig, MetaConfig, SAVNConfig
 from geonav.policy.testing import tiny_env_factory, tiny_net
 
 
@@ -42,3 +51,91 @@ def test_slots_run_the_batch_tasks_in_cyclic_order():
     assert [r["task_index"] for r in res.records[:3]] == [0, 1, 0]
     assert sorted(r["task_index"] for r in res.records[3:6]) == [0, 1, 1]
     assert bat.meta_updates == 3
+
+
+# -- ISAR and A3C bases: per-task parameters ------------------------------------------------
+
+L = 12  # max_steps of the meta-tasks below
+
+
+@pytest.fixture
+def float64(monkeypatch):
+    """Everything in float64, the frozen encoder's input included."""
+    old = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float64)
+    to_float = encoders.images_to_float
+    monkeypatch.setattr(encoders, "images_to_float",
+                        lambda *a, **k: to_float(*a, **k).to(torch.float64))
+    yield
+    torch.set_default_dtype(old)
+
+
+def force_actions(monkeypatch, script):
+    """The same actions in both engines: ``script[task][t]`` at step t of an episode."""
+    now = {"task": 0, "t": 0}
+    run = TaskRunner.run
+
+    def ref_run(self, psi, task_index, first_episode, episodes):
+        now.update(task=task_index, t=0)
+        return run(self, psi, task_index, first_episode, episodes)
+
+    def ref_choose(logits, greedy, rng):
+        now["t"] += 1
+        return int(script[now["task"]][now["t"] - 1])
+
+    monkeypatch.setattr(TaskRunner, "run", ref_run)
+    monkeypatch.setattr(isar_mod, "choose_action", ref_choose)
+    monkeypatch.setattr(a3c_mod, "choose_action", ref_choose)
+    box = {}
+
+    def bat_sample(logits, rng):
+        v = box["trainer"].venv
+        return torch.tensor([int(script[v.task[s]][min(v.steps[s], L - 1)])
+                             for s in range(v.n_slots)])
+
+    monkeypatch.setattr(meta_mod, "sample_actions", bat_sample)
+    return box
+
+
+BASES = {"isar2": ISARConfig(n_steps=2, k_segments=3, alpha=0.5, lr=0.05, max_grad_norm=0.2),
+         "isar1": ISARConfig(n_steps=2, k_segments=3, alpha=0.5, lr=0.05, max_grad_norm=0.2,
+                             second_order=False),
+         "a3c": A3CConfig(t_max=3, lr=0.05, max_grad_norm=0.2)}
+
+
+@pytest.mark.parametrize("base", list(BASES))
+@pytest.mark.parametrize("b", [1, 3])
+def test_meta_update_equals_reference(float64, monkeypatch, base, b):
+    """B tasks' gradients g_i and the meta update equal the async MetaTrainer's (its
+    TaskRunner's, one task after another) on the same trajectories, to 1e-10."""
+    algo = base[:4].rstrip("12")
+    factory = multi_task_factory(3)
+    script = np.random.default_rng(5).integers(0, 4, (3, L))
+    script[1, :6] = [3, 2, 3, 2, 3, 2]  # task 1 walks to its target (0, 0)
+    box = force_actions(monkeypatch, script)
+    net = tiny_net("random", 32, size=16)
+    meta = MetaConfig(episodes=b, workers=0, batch_tasks=b, meta_lr=0.1, seed=4)
+    ref = MetaTrainer(factory, net, algo, BASES[base], meta, keep_task_grads=True,
+                      tensorboard=False)
+    ref_res = ref.train()
+    bat = build_meta_trainer(algo, "batched", factory, net, BASES[base], meta,
+                             keep_task_grads=True, tensorboard=False)
+    box["trainer"] = bat
+    assert type(bat).__name__ == {"isar": "BatchedMetaISAR", "a3c": "BatchedMetaA3C"}[algo]
+    res = bat.train()
+    lengths = [r["length"] for r in res.records]
+    assert lengths == [r["length"] for r in ref_res.records]
+    assert [r["success"] for r in res.records] == [r["success"] for r in ref_res.records]
+    if b == 3:  # one episode ends early, mid-window; the others run to the cap
+        assert lengths[1] < L and L in lengths, lengths
+        assert res.records[1].get("adaptive_updates", 1) == \
+            ref_res.records[1].get("adaptive_updates", 1)
+    (r_log,), (b_log,) = ref.update_log, bat.update_log
+    assert b_log["tasks"] == r_log["tasks"] == list(range(b))
+    names = [n for n, _ in ref.model.named_parameters()]
+    for i in range(b):
+        for n, x, y in zip(names, r_log["grads"][i], b_log["grads"][i], strict=True):
+            assert float(x.abs().max()) > 0, n
+            torch.testing.assert_close(y, x, atol=1e-10, rtol=1e-10, msg=f"task {i} {n}")
+    for n, x, y in zip(names, r_log["psi_after"], b_log["psi_after"], strict=True):
+        torch.testing.assert_close(y, x, atol=1e-10, rtol=1e-10, msg=n)

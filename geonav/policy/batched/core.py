@@ -180,9 +180,16 @@ class Recorder:
 def linear(params: Params, key: str, x: torch.Tensor, adapted: Adapted | None,
            rec: Recorder | None, idx: torch.Tensor | None = None) -> torch.Tensor:
     """y = W_s x + b_s for a (B, in) input, recorded for inner gradients when asked
-    (``idx``: x's rows of the constant feature table, for the Gram-matrix factors)."""
+    (``idx``: x's rows of the constant feature table, for the Gram-matrix factors).
+
+    W and b are shared (out, in) and (out,), or per slot (B, out, in) and (B, out)
+    (stacked per-task parameters); the factors apply on top of either."""
     wname, bname = LAYERS[key]
-    y = F.linear(x, params[wname], params[bname])
+    w, b = params[wname], params[bname]
+    if w.dim() == 3:  # per-slot weights (B, out, in), biases (B, out): meta-training's phi^i
+        y = torch.baddbmm(b.unsqueeze(-1), w, x.unsqueeze(-1)).squeeze(-1)
+    else:
+        y = F.linear(x, w, b)
     if adapted is not None and key in adapted:
         corr = adapted[key].correction(x, idx)
         if corr is not None:

@@ -1,59 +1,99 @@
-"""Meta-training (Eq. 1, ALGORITHMS.md (d)) on the batched engine, SAVN base, E = 1.
+"""Meta-training (Eq. 1, ALGORITHMS.md (d)) on the batched engine, E = 1, frozen encoder.
 
-A meta-iteration takes the next B meta-tasks in cyclic order and runs one SAVN episode on
-each, all B at once: slot j of the round is pinned to task j of the batch and starts from
-psi (:class:`~geonav.policy.batched.savn.BatchedSAVNTrainer`'s episode-synchronous
-round). Task i's gradient g_i is its episode's exact meta-gradient w.r.t. its initial
-parameters (= psi, and Lambda); then psi <- psi - eta sum_i g_i (SGD, or Adam as
-``meta_optimizer``; ``meta_max_grad_norm`` clips the sum). With E = 1 the in-task Adam
-of the reference (:class:`~geonav.policy.meta.MetaTrainer`) never changes a task
-gradient (its step follows the only episode and is discarded), so this is the
-reference's meta update exactly, for B tasks in one batch.
+A meta-iteration takes the next B meta-tasks in cyclic order and runs one episode of the
+base algorithm on each, all B at once: slot j of the round is pinned to task j of the
+batch and starts from psi. Task i's gradient g_i is what the reference
+(:class:`~geonav.policy.meta.MetaTrainer` and its ``TaskRunner``) defines; then
+psi <- psi - eta sum_i g_i (:func:`~geonav.policy.meta.meta_step`: SGD, or Adam as
+``meta_optimizer``; ``meta_max_grad_norm`` clips the sum). Checkpoints are written after
+the meta update that reaches every ``checkpoint_every`` episodes, as the reference does,
+so a resume starts at a batch boundary and goes on with the cyclic order.
 
-ISAR and A3C bases (their in-task Adam steps make every task's parameters differ within
-its episode) and E > 1 run on the async engine.
+* **SAVN base** (:class:`BatchedMetaSAVN`, on
+  :class:`~geonav.policy.batched.savn.BatchedSAVNTrainer`'s episode-synchronous round):
+  g_i is the episode's exact meta-gradient w.r.t. its initial parameters (= psi, and
+  Lambda). With E = 1 the reference's in-task Adam never changes a task gradient (its
+  step follows the only episode and is discarded).
+* **ISAR base** (:class:`BatchedMetaISAR`): each slot carries its own copy of the
+  parameters, phi^i, stacked along a leading dim (B, ...) (per-slot weights of every
+  linear map, :func:`~geonav.policy.batched.core.linear`), and its own fresh in-task
+  Adam state (one Adam over the stacked tensors: Adam is elementwise and every live
+  slot steps at the same windows, so slot j's moments and step count are exactly a
+  per-task Adam's). On top of phi^i the interaction policy theta is the exact factored
+  per-slot inner update of :mod:`geonav.policy.batched.isar` (N-step segments, inner SGD
+  at the first K - 1 segment ends, create_graph = ``second_order``); at each window end
+  (K segments, or the episode end) grad_phi^i of the window's summed L_adapt is added,
+  unclipped, to g_i, clipped per slot to ``max_grad_norm`` and stepped by the slot's
+  Adam; theta <- phi^i, h detached. g_i = sum over windows of those gradients (first
+  order in psi: d phi^i / d psi is taken as I).
+* **A3C base** (:class:`BatchedMetaA3C`): the same with windows of one segment of
+  ``t_max`` steps and no inner step: one per-task Adam step per rollout, g_i the sum of
+  the rollout gradients (ISAR with K = 1 is the A3C worker's update exactly).
+
+All slots start together with h = 0, so their segments and windows fall on the same
+global clock as each reference episode's own; a slot whose episode ends waits (its later
+steps are masked out, its partial window is flushed at the window end, where its phi^i
+has not changed since, so this is the reference's flush at done) until every slot has
+finished. ``tests/test_batched_meta.py`` checks the meta update of B = 1 and B = 3 tasks
+against the reference's in float64 on forced trajectories.
 """
 
 from __future__ import annotations
 
+import time
 from dataclasses import replace
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
-from torch import nn
 
 from geonav.errors import ConfigError
+from geonav.policy.batched.core import Adapted, Recorder, factored_step, sample_actions
+from geonav.policy.batched.isar import gram_matrix, segment_terms, values_dtype
 from geonav.policy.batched.savn import BatchedSAVNTrainer
-from geonav.policy.config import to_dict
-from geonav.policy.meta_config import MetaConfig, SAVNConfig
+from geonav.policy.batched.trainer import BatchedTrainer
+from geonav.policy.callbacks import Callback
+from geonav.policy.config import A3CConfig, to_dict
+from geonav.policy.functional import grads_of
+from geonav.policy.isar import gradient_path
+from geonav.policy.losses import LossTerms
+from geonav.policy.meta import TASK_GRADIENT, checkpoint_after_update, meta_step
+from geonav.policy.meta_config import MetaConfig
+from geonav.policy.model import State, detach_state
 from geonav.vecenv import LatticeVecEnv
 
 
-class BatchedMetaSAVN(BatchedSAVNTrainer):
-    """Meta-training with the SAVN base on the batched engine (see the module docstring).
-
-    Args as :class:`~geonav.policy.meta.MetaTrainer` with ``algo = 'savn'``; the batch is
-    the meta-batch B (``meta_cfg.batch``).
-    """
+class MetaRun:
+    """What the batched meta-trainers share (mixed in before a batched trainer): the meta
+    config, the slots' cyclic task order, the meta optimiser, the run folder's meta
+    entries and checkpoints at batch boundaries. B is the meta-batch."""
 
     config_key = "base"
+    base_algo = ""
+    base_overrides: ClassVar[dict[str, Any]] = {}
+    """Base-config fields the meta run sets (besides its budget, seed and threads)."""
 
-    def __init__(self, env_factory: Any, net_cfg: Any, base_cfg: SAVNConfig,
-                 meta_cfg: MetaConfig | None = None, **kwargs: Any) -> None:
+    def __init__(self, env_factory: Any, net_cfg: Any, base_cfg: A3CConfig,
+                 meta_cfg: MetaConfig | None = None, *, keep_task_grads: bool = False,
+                 **kwargs: Any) -> None:
         self.meta_cfg = m = meta_cfg if meta_cfg is not None else MetaConfig()
         if m.episodes_per_task != 1:
             raise ConfigError("batched meta-training runs E = 1 episode per task visit; "
                               "use engine = 'async' for more")
-        self.algorithm = "meta-savn"
+        self.algorithm = f"meta-{self.base_algo}"
         base_cfg = replace(base_cfg, episodes=m.episodes, workers=m.workers, seed=m.seed,
-                           checkpoint_every=m.checkpoint_every, torch_threads=m.torch_threads,
-                           max_grad_norm=0.0)
+                           checkpoint_every=0, torch_threads=m.torch_threads,
+                           **self.base_overrides)
         kwargs.pop("batch", None)
-        super().__init__(env_factory, net_cfg, base_cfg, batch=m.batch, **kwargs)
-        self.n_tasks = len(self.env.unwrapped.tasks)
-        self.meta_updates = int(self.ckpt.meta.get("meta_updates", 0)
-                                if self.ckpt is not None else 0)
+        super().__init__(env_factory, net_cfg, base_cfg, batch=m.batch,  # type: ignore[call-arg]
+                         **kwargs)
+        self.n_tasks = len(self.env.unwrapped.tasks)  # type: ignore[attr-defined]
+        ckpt = self.ckpt  # type: ignore[attr-defined]
+        self.meta_updates = int(ckpt.meta.get("meta_updates", 0) if ckpt is not None else 0)
+        self.keep_task_grads = keep_task_grads
+        self.update_log: list[dict[str, Any]] = []
+        """Per meta update, as :attr:`MetaTrainer.update_log` (the batch's tasks; with
+        ``keep_task_grads`` psi before and after and the task gradients)."""
 
     def build_optimizer(self, params: list[torch.Tensor]) -> torch.optim.Optimizer:
         m = self.meta_cfg
@@ -62,46 +102,64 @@ class BatchedMetaSAVN(BatchedSAVNTrainer):
         return torch.optim.SGD(params, lr=m.meta_lr)
 
     def resolved_config(self) -> dict[str, Any]:
-        d = super().resolved_config()
-        d.update({"meta": to_dict(self.meta_cfg), "base_algorithm": "savn",
-                  "task_gradient": "exact meta-gradient w.r.t. the initial parameters"})
+        d = super().resolved_config()  # type: ignore[misc]
+        d.update({"meta": to_dict(self.meta_cfg), "base_algorithm": self.base_algo,
+                  "task_gradient": TASK_GRADIENT[self.base_algo]})
         return d
 
     def checkpoint_meta(self, episodes: int) -> dict[str, Any]:
-        meta = super().checkpoint_meta(episodes)
+        meta = super().checkpoint_meta(episodes)  # type: ignore[misc]
         meta["config"]["meta"] = to_dict(self.meta_cfg)
-        meta["config"]["base_algorithm"] = "savn"
+        meta["config"]["base_algorithm"] = self.base_algo
         meta["meta_updates"] = self.meta_updates
         return meta
 
     def batch_tasks(self, visits: int) -> np.ndarray:
         """Slot j <- task (visits + j) mod M, visits = episodes so far (a resume goes on)."""
-        return ((visits + np.arange(self.batch)) % self.n_tasks).astype(np.int64)
+        return ((visits + np.arange(self.batch)) % self.n_tasks).astype(  # type: ignore
+            np.int64)
 
     def make_venv(self) -> LatticeVecEnv:
-        self._visits = self.episodes_done
-        return LatticeVecEnv(self.env, self.batch, slot_tasks=self.batch_tasks(self._visits))
+        self._visits = self.episodes_done  # type: ignore[attr-defined]
+        return LatticeVecEnv(self.env, self.batch,  # type: ignore[attr-defined]
+                             slot_tasks=self.batch_tasks(self._visits))
 
-    def next_round(self) -> None:
-        self._visits += self.batch
-        self.venv.slot_tasks = self.batch_tasks(self._visits)
-        self.venv.reset()
+    def next_round(self, visits: int | None = None) -> None:
+        """The next B tasks (``visits``: the episodes the round ran; default B)."""
+        self._visits += self.batch if visits is None else visits  # type: ignore
+        self.venv.slot_tasks = self.batch_tasks(self._visits)  # type: ignore[attr-defined]
+        self.venv.reset()  # type: ignore[attr-defined]
+
+    def after_update(self, before: int, cbs: list[Callback]) -> None:
+        checkpoint_after_update(self, before, cbs, self.rng_snapshot)  # type: ignore
+
+    def record(self, f: dict[str, Any], stats: dict[str, float]) -> dict[str, Any]:
+        rec = super().record(f, stats)  # type: ignore[misc]
+        rec["meta_update"] = f["meta_update"]
+        return rec
+
+
+class BatchedMetaSAVN(MetaRun, BatchedSAVNTrainer):
+    """Meta-training with the SAVN base on the batched engine (see the module docstring).
+
+    Args as :class:`~geonav.policy.meta.MetaTrainer` with ``algo = 'savn'``.
+    """
+
+    base_algo = "savn"
+    base_overrides: ClassVar[dict[str, Any]] = {"max_grad_norm": 0.0}
 
     def step_optimizer(self, loss: torch.Tensor) -> None:
         """psi <- psi - eta * sum_i g_i: the round's loss is the mean over the B slots,
         so its gradient times B is the sum of the task gradients."""
         self.optimizer.zero_grad(set_to_none=True)
         (loss * self.batch).backward()
-        m = self.meta_cfg
-        for p in self.params_list:
-            if p.grad is None:
-                p.grad = torch.zeros_like(p)
+        total = [torch.zeros_like(p) if p.grad is None else p.grad for p in self.params_list]
         if self.on_gradients is not None:
-            self.on_gradients([p.grad for p in self.params_list])
-        if m.meta_max_grad_norm > 0:
-            nn.utils.clip_grad_norm_(self.params_list, m.meta_max_grad_norm)
-        self.optimizer.step()
+            self.on_gradients(total)
+        entry = meta_step(self.optimizer, self.params_list, [total],
+                          self.meta_cfg.meta_max_grad_norm)
         self.meta_updates += 1
+        self.update_log.append({"tasks": self.venv.slot_tasks.tolist(), **entry})
 
     def update(self) -> tuple[list[dict[str, Any]], dict[str, float]]:
         finals, stats = super().update()
@@ -109,10 +167,196 @@ class BatchedMetaSAVN(BatchedSAVNTrainer):
             f["meta_update"] = self.meta_updates
         return finals, stats
 
+
+def clip_per_slot(grads: list[torch.Tensor], max_norm: float) -> None:
+    """``nn.utils.clip_grad_norm_`` of each slot's gradients (dim 0 of every tensor), in
+    place: slot s is scaled by min(1, max_norm / (|g_s| + 1e-6))."""
+    if not max_norm:
+        return
+    norms = torch.stack([g.flatten(1).pow(2).sum(1) for g in grads]).sum(0).sqrt()
+    coef = (max_norm / (norms + 1e-6)).clamp(max=1.0)
+    for g in grads:
+        g.mul_(coef.view(-1, *([1] * (g.dim() - 1))))
+
+
+class BatchedMetaISAR(MetaRun, BatchedTrainer):
+    """Meta-training with the ISAR base on the batched engine, per-task parameters (see
+    the module docstring). Args as :class:`~geonav.policy.meta.MetaTrainer` with
+    ``algo = 'isar'`` (``base_cfg`` an :class:`~geonav.policy.meta_config.ISARConfig`:
+    its ``lr`` and Adam settings are the in-task Adam's, ``max_grad_norm`` its clip)."""
+
+    base_algo = "isar"
+    adapted_weights = True
+
+    def __init__(self, env_factory: Any, net_cfg: Any, base_cfg: Any,
+                 meta_cfg: MetaConfig | None = None, **kwargs: Any) -> None:
+        if not getattr(base_cfg, "flush_partial_window", True):
+            raise ConfigError("flush_partial_window = false is implemented on engine = "
+                              "'async' only")
+        super().__init__(env_factory, net_cfg, base_cfg, meta_cfg, **kwargs)
+
+    def schedule(self) -> tuple[int, int]:
+        """(steps per segment N, segments per window K)."""
+        return self.cfg.n_steps, self.cfg.k_segments
+
+    def resolved_config(self) -> dict[str, Any]:
+        d = super().resolved_config()
+        d["gradient_path"] = {**gradient_path(self.cfg), "path": "batched, per-task "
+                              "parameters stacked (B, ...), inner updates as per-slot "
+                              "rank-one factors on top"}
+        return d
+
+    def _setup(self) -> None:
+        super()._setup()
+        self.gram = gram_matrix(self.table)
+
     def record(self, f: dict[str, Any], stats: dict[str, float]) -> dict[str, Any]:
         rec = super().record(f, stats)
-        rec["meta_update"] = f["meta_update"]
+        if self.base_algo == "isar":  # the reference's ISAR columns (A3C has none)
+            rec.update({"inner_updates": f["inner_updates"],
+                        "adaptive_updates": f["adaptive_updates"], "kl_weight": 0.0})
         return rec
 
+    def task_parameters(self) -> tuple[dict[str, torch.Tensor], torch.optim.Optimizer]:
+        """phi^j <- psi for every slot, stacked (B, ...) leaves, and their fresh Adam."""
+        cfg, b = self.cfg, self.batch
+        phi = {n: p.detach().unsqueeze(0).repeat(b, *([1] * p.dim())).requires_grad_()
+               for n, p in self.params().items()}
+        opt = torch.optim.Adam(list(phi.values()), lr=cfg.lr, betas=cfg.adam_betas,
+                               eps=cfg.adam_eps, amsgrad=cfg.amsgrad, fused=cfg.fused or None)
+        return phi, opt
 
-__all__ = ["BatchedMetaSAVN"]
+    def segment(self, phi: dict[str, torch.Tensor], adapted: Adapted, state: State,
+                alive: np.ndarray, n: int, record: bool
+                ) -> tuple[LossTerms, Recorder | None, State, list[dict[str, Any]]]:
+        """Up to n lock-step steps with the graph under theta_s = phi^s + factors: (the
+        live slots' summed segment loss, the recorder (``record``), the state, finished
+        episodes). ``alive`` (B,) is updated in place."""
+        lc, e, dev = self.cfg.loss, self.net_cfg.embed_dim, self.device
+        rec = Recorder(gram=self.gram) if record else None
+        logits, values, actions, masks, rewards, ends, end_values = [], [], [], [], [], [], []
+        finals: list[dict[str, Any]] = []
+        assert self.table is not None
+        for _ in range(n):
+            if not alive.any():
+                break
+            vi, ti = self.slot_indices()
+            logit, value, state = factored_step(phi, e, self.table[vi], self.table[ti], state,
+                                                adapted, rec, None, vi, ti,
+                                                self.prev_features(vi))
+            a = sample_actions(logit, self.rng).to(dev)
+            res = self.venv.step(a.cpu().numpy(), autoreset=False)
+            if lc.bootstrap_on_truncation:  # V(s) at a truncation under theta_s (no reset)
+                end_values.append(np.zeros(len(alive)))
+                if (res.truncated & alive).any():
+                    with torch.no_grad():
+                        v2, t2 = self.slot_indices()
+                        _, v_end, _ = factored_step(phi, e, self.table[v2], self.table[t2],
+                                                    state, adapted, None, None, v2, t2,
+                                                    self.prev_features(v2))
+                    end_values[-1] = np.where(res.truncated, v_end.cpu().numpy(), 0.0)
+            logits.append(logit)
+            values.append(value)
+            actions.append(a)
+            masks.append(torch.from_numpy(alive.copy()))
+            rewards.append(np.where(alive, res.rewards, 0.0))
+            ends.append(res.done & alive)
+            finals += [f for f in res.final if alive[f["slot"]]]
+            alive &= ~res.done
+        with torch.no_grad():  # V(s_next) under theta_s, without advancing the state
+            vi, ti = self.slot_indices()
+            _, v_next, _ = factored_step(phi, e, self.table[vi], self.table[ti], state,
+                                         adapted, None, None, vi, ti, self.prev_features(vi))
+        vs = torch.stack(values)
+        (terms,) = segment_terms(torch.stack(logits), vs, torch.stack(actions),
+                                 np.stack(rewards), np.stack(ends), v_next, lc,
+                                 np.stack(end_values) if end_values else None,
+                                 [torch.stack(masks).to(dev, vs.dtype)])
+        return terms, rec, state, finals
+
+    def update(self) -> tuple[list[dict[str, Any]], dict[str, float]]:
+        """One meta-iteration: an episode per slot on per-task parameters, the meta step."""
+        cfg, dev, b = self.cfg, self.device, self.batch
+        n, k = self.schedule()
+        dtype = values_dtype(self)
+        n_jobs = min(b, cfg.episodes - self.episodes_done)
+        alive = np.arange(b) < n_jobs
+        phi, opt = self.task_parameters()
+        leaves = list(phi.values())
+        task_grads = [torch.zeros_like(x) for x in leaves]
+        z = torch.zeros(b, self.net_cfg.lstm_size, dtype=dtype, device=dev)
+        state: State = (z, z.clone(), torch.zeros(b, self.net_cfg.n_actions, dtype=dtype,
+                                                  device=dev))
+        inner = np.zeros(b, np.int64)
+        adapt = np.zeros(b, np.int64)
+        finals: list[dict[str, Any]] = []
+        pl = vl = ent = 0.0
+        live_segments = 0
+        while alive.any():  # one window of up to K segments, then each slot's Adam step
+            adapted: Adapted = {}
+            window: list[torch.Tensor] = []
+            adapt += alive
+            for j in range(k):
+                live_segments += int(alive.sum())
+                terms, rec, state, fin = self.segment(phi, adapted, state, alive, n, k > 1)
+                for f in fin:
+                    f["inner_updates"] = int(inner[f["slot"]])
+                    f["adaptive_updates"] = int(adapt[f["slot"]])
+                finals += fin
+                window.append(terms.total)
+                pl, vl = pl + float(terms.policy.detach()), vl + float(terms.value.detach())
+                ent += float(terms.entropy.detach())
+                if not alive.any():
+                    break
+                if j < k - 1:
+                    assert rec is not None
+                    live = torch.from_numpy(alive).to(dev, dtype)
+                    adapted = rec.inner_factors(terms.total, adapted, cfg.alpha,
+                                                create_graph=cfg.second_order, weights=live)
+                    inner += alive
+            grads = grads_of(torch.stack(window).sum(), leaves)   # (B, ...) per task
+            torch._foreach_add_(task_grads, grads)                 # g_i: unclipped
+            clip_per_slot(grads, cfg.max_grad_norm)
+            for x, g in zip(leaves, grads, strict=True):
+                x.grad = g
+            opt.step()
+            state = detach_state(state)
+        if self.on_gradients is not None:
+            self.on_gradients([g[:n_jobs].sum(0) for g in task_grads])
+        entry = meta_step(self.optimizer, self.params_list,
+                          [[g[j] for g in task_grads] for j in range(n_jobs)],
+                          self.meta_cfg.meta_max_grad_norm, keep=self.keep_task_grads)
+        self.meta_updates += 1
+        self.update_log.append({"tasks": self.venv.slot_tasks[:n_jobs].tolist(), **entry})
+        for f in finals:
+            f["t0"] = float(self.t_episode[f["slot"]])
+            f["meta_update"] = self.meta_updates
+        finals.sort(key=lambda f: f["slot"])  # records in batch order, as the reference
+        self.next_round(n_jobs)
+        self.t_episode[:] = time.perf_counter()
+        # per live slot and segment (entropy: per step), as the reference's episode means
+        segs = max(live_segments, 1)
+        return finals, {"policy_loss": pl / segs, "value_loss": vl / segs,
+                        "entropy": ent / max(sum(f["length"] for f in finals), 1)}
+
+
+class BatchedMetaA3C(BatchedMetaISAR):
+    """Meta-training with the A3C base on the batched engine: :class:`BatchedMetaISAR`
+    with windows of one ``t_max``-step rollout and no inner step (one per-task Adam step
+    per rollout; g_i the sum of the rollout gradients). Args as
+    :class:`~geonav.policy.meta.MetaTrainer` with ``algo = 'a3c'``."""
+
+    base_algo = "a3c"
+
+    def schedule(self) -> tuple[int, int]:
+        return self.cfg.t_max, 1
+
+
+
+BATCHED_META: dict[str, type] = {"savn": BatchedMetaSAVN, "isar": BatchedMetaISAR,
+                                 "a3c": BatchedMetaA3C}
+"""The batched meta-trainer of each base algorithm."""
+
+
+__all__ = ["BatchedMetaSAVN", "BatchedMetaISAR", "BatchedMetaA3C", "BATCHED_META",
+           "MetaRun", "clip_per_slot"]
