@@ -128,6 +128,10 @@ def build_meta_trainer(algo: str, engine: str, env_factory: Any, net_cfg: Any, b
         raise ConfigError(f"meta-training base must be one of a3c, isar, savn, not {algo!r}")
     reason = None
     if engine == "batched":
+        if net_cfg is None and kwargs.get("resume") is not None:
+            from geonav.policy.checkpoint import load_checkpoint
+
+            net_cfg = load_checkpoint(kwargs["resume"]).net_config  # the resumed network
         reason = _fallback_reason(algo, net_cfg, base_cfg, False, False)
         if reason is None and (net_cfg is None or net_cfg.encoder == "cnn"):
             reason = ("batched meta-training needs a frozen encoder (per-task copies of the "

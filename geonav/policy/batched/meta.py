@@ -209,6 +209,8 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
     def _setup(self) -> None:
         super()._setup()
         self.gram = gram_matrix(self.table)
+        self._ran = 0
+        """Episodes of the last round (its slots move to the next tasks at the next one)."""
 
     def record(self, f: dict[str, Any], stats: dict[str, float]) -> dict[str, Any]:
         rec = super().record(f, stats)
@@ -277,6 +279,9 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
     def update(self) -> tuple[list[dict[str, Any]], dict[str, float]]:
         """One meta-iteration: an episode per slot on per-task parameters, the meta step."""
         cfg, dev, b = self.cfg, self.device, self.batch
+        if self._ran:  # the next tasks' episodes start here, so a checkpoint taken after
+            self.next_round(self._ran)  # an update resumes with the same start draws
+            self.t_episode[:] = time.perf_counter()
         n, k = self.schedule()
         dtype = values_dtype(self)
         n_jobs = min(b, cfg.episodes - self.episodes_done)
@@ -332,8 +337,7 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
             f["t0"] = float(self.t_episode[f["slot"]])
             f["meta_update"] = self.meta_updates
         finals.sort(key=lambda f: f["slot"])  # records in batch order, as the reference
-        self.next_round(n_jobs)
-        self.t_episode[:] = time.perf_counter()
+        self._ran = n_jobs
         # per live slot and segment (entropy: per step), as the reference's episode means
         segs = max(live_segments, 1)
         return finals, {"policy_loss": pl / segs, "value_loss": vl / segs,
