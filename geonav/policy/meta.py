@@ -49,13 +49,14 @@ TASK_GRADIENT = {"isar": "first order in psi: sum over windows of grad_phi_hat L
 
 def meta_step(optimizer: torch.optim.Optimizer, psi: list[torch.Tensor],
               grads: list[list[torch.Tensor]], max_norm: float = 0.0, *,
-              keep: bool = False) -> dict[str, Any]:
+              keep: bool = False, total: list[torch.Tensor] | None = None) -> dict[str, Any]:
     """psi <- psi - eta * sum_i g_i with the meta optimiser (``max_norm`` > 0 clips the
     sum first); returns the update's log entry (with ``keep``: psi before and after and
-    the task gradients)."""
-    total = [torch.zeros_like(p) for p in psi]
-    for g in grads:
-        torch._foreach_add_(total, g)
+    the task gradients). ``total``: the sum, when the caller has it (consumed)."""
+    if total is None:
+        total = [torch.zeros_like(p) for p in psi]
+        for g in grads:
+            torch._foreach_add_(total, g)
     entry: dict[str, Any] = {}
     if keep:
         entry["psi_before"] = [p.detach().clone() for p in psi]

@@ -48,7 +48,13 @@ import numpy as np
 import torch
 
 from geonav.errors import ConfigError
-from geonav.policy.batched.core import Adapted, Recorder, factored_step, sample_actions
+from geonav.policy.batched.core import (
+    Adapted,
+    Recorder,
+    factored_step,
+    layer_grads,
+    sample_actions,
+)
 from geonav.policy.batched.isar import gram_matrix, segment_terms, values_dtype
 from geonav.policy.batched.savn import BatchedSAVNTrainer
 from geonav.policy.batched.trainer import BatchedTrainer
@@ -168,12 +174,18 @@ class BatchedMetaSAVN(MetaRun, BatchedSAVNTrainer):
         return finals, stats
 
 
+def psi_layout(g: torch.Tensor) -> torch.Tensor:
+    """One slot's gradient in its parameter's layout (weights are stored transposed)."""
+    return g.t().contiguous() if g.dim() == 2 else g
+
+
 def clip_per_slot(grads: list[torch.Tensor], max_norm: float) -> None:
     """``nn.utils.clip_grad_norm_`` of each slot's gradients (dim 0 of every tensor), in
     place: slot s is scaled by min(1, max_norm / (|g_s| + 1e-6))."""
     if not max_norm:
         return
-    norms = torch.stack([g.flatten(1).pow(2).sum(1) for g in grads]).sum(0).sqrt()
+    norms = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g.flatten(1), dim=1)
+                                                  for g in grads]), dim=0)
     coef = (max_norm / (norms + 1e-6)).clamp(max=1.0)
     for g in grads:
         g.mul_(coef.view(-1, *([1] * (g.dim() - 1))))
@@ -211,6 +223,7 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
         self.gram = gram_matrix(self.table)
         self._ran = 0
         """Episodes of the last round (its slots move to the next tasks at the next one)."""
+        self._slots: Any = None
 
     def record(self, f: dict[str, Any], stats: dict[str, float]) -> dict[str, Any]:
         rec = super().record(f, stats)
@@ -219,43 +232,66 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
                         "adaptive_updates": f["adaptive_updates"], "kl_weight": 0.0})
         return rec
 
-    def task_parameters(self) -> tuple[dict[str, torch.Tensor], torch.optim.Optimizer]:
-        """phi^j <- psi for every slot, stacked (B, ...) leaves, and their fresh Adam."""
+    def task_parameters(self) -> tuple[dict[str, torch.Tensor], torch.optim.Optimizer,
+                                       list[torch.Tensor]]:
+        """phi^j <- psi for every slot, stacked (B, ...) leaves (weights (B, in, out), see
+        :func:`~geonav.policy.batched.core.linear`), their fresh Adam and zeroed task
+        gradients. The buffers live across rounds (re-allocating B copies of the network
+        and its Adam moments each round costs more than filling them)."""
         cfg, b = self.cfg, self.batch
-        phi = {n: p.detach().unsqueeze(0).repeat(b, *([1] * p.dim())).requires_grad_()
-               for n, p in self.params().items()}
-        opt = torch.optim.Adam(list(phi.values()), lr=cfg.lr, betas=cfg.adam_betas,
-                               eps=cfg.adam_eps, amsgrad=cfg.amsgrad, fused=cfg.fused or None)
-        return phi, opt
+        psi = self.params()
+        if self._slots is None:
+            phi = {n: torch.empty((b, *p.shape[::-1]) if p.dim() == 2 else (b, *p.shape),
+                                  dtype=p.dtype, device=p.device).requires_grad_()
+                   for n, p in psi.items()}
+            opt = torch.optim.Adam(list(phi.values()), lr=cfg.lr, betas=cfg.adam_betas,
+                                   eps=cfg.adam_eps, amsgrad=cfg.amsgrad,
+                                   fused=cfg.fused or None)
+            self._slots = (phi, opt, [torch.zeros_like(x) for x in phi.values()])
+        phi, opt, task_grads = self._slots
+        with torch.no_grad():
+            for n, p in psi.items():
+                phi[n].copy_((p.t() if p.dim() == 2 else p).unsqueeze(0).expand_as(phi[n]))
+            for st in opt.state.values():  # a fresh Adam: step 0, zero moments
+                for v in st.values():
+                    v.zero_()
+            for g in task_grads:
+                g.zero_()
+        return phi, opt, task_grads
+
+    def view_bases(self, phi: dict[str, torch.Tensor]) -> ViewBases:
+        """The window's view embeddings W x + b under every slot's phi^s (no graph)."""
+        assert self.table is not None
+        return ViewBases(phi, self.table, self.venv, self.schedule())
 
     def segment(self, phi: dict[str, torch.Tensor], adapted: Adapted, state: State,
-                alive: np.ndarray, n: int, record: bool
-                ) -> tuple[LossTerms, Recorder | None, State, list[dict[str, Any]]]:
-        """Up to n lock-step steps with the graph under theta_s = phi^s + factors: (the
-        live slots' summed segment loss, the recorder (``record``), the state, finished
-        episodes). ``alive`` (B,) is updated in place."""
+                alive: np.ndarray, views: ViewBases, rec: Recorder | None
+                ) -> tuple[LossTerms, State, list[dict[str, Any]]]:
+        """Up to N lock-step steps with the graph under theta_s = phi^s + factors, the
+        linear maps recorded in ``rec``: (the live slots' summed segment loss, the state,
+        the finished episodes). ``alive`` (B,) is updated in place."""
         lc, e, dev = self.cfg.loss, self.net_cfg.embed_dim, self.device
-        rec = Recorder(gram=self.gram) if record else None
         logits, values, actions, masks, rewards, ends, end_values = [], [], [], [], [], [], []
         finals: list[dict[str, Any]] = []
         assert self.table is not None
-        for _ in range(n):
+        table = self.table
+
+        def step(st: State, r: Recorder | None, leaf: bool) -> tuple[Any, Any, State]:
+            vi, ti = self.slot_indices()
+            return factored_step(phi, e, table[vi], table[ti], st, adapted, r, None, vi, ti,
+                                 self.prev_features(vi), views.obs(vi, leaf), views.target)
+
+        for _ in range(self.schedule()[0]):
             if not alive.any():
                 break
-            vi, ti = self.slot_indices()
-            logit, value, state = factored_step(phi, e, self.table[vi], self.table[ti], state,
-                                                adapted, rec, None, vi, ti,
-                                                self.prev_features(vi))
+            logit, value, state = step(state, rec, True)
             a = sample_actions(logit, self.rng).to(dev)
             res = self.venv.step(a.cpu().numpy(), autoreset=False)
             if lc.bootstrap_on_truncation:  # V(s) at a truncation under theta_s (no reset)
                 end_values.append(np.zeros(len(alive)))
                 if (res.truncated & alive).any():
                     with torch.no_grad():
-                        v2, t2 = self.slot_indices()
-                        _, v_end, _ = factored_step(phi, e, self.table[v2], self.table[t2],
-                                                    state, adapted, None, None, v2, t2,
-                                                    self.prev_features(v2))
+                        v_end = step(state, None, False)[1]
                     end_values[-1] = np.where(res.truncated, v_end.cpu().numpy(), 0.0)
             logits.append(logit)
             values.append(value)
@@ -266,15 +302,38 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
             finals += [f for f in res.final if alive[f["slot"]]]
             alive &= ~res.done
         with torch.no_grad():  # V(s_next) under theta_s, without advancing the state
-            vi, ti = self.slot_indices()
-            _, v_next, _ = factored_step(phi, e, self.table[vi], self.table[ti], state,
-                                         adapted, None, None, vi, ti, self.prev_features(vi))
+            v_next = step(state, None, False)[1]
         vs = torch.stack(values)
         (terms,) = segment_terms(torch.stack(logits), vs, torch.stack(actions),
                                  np.stack(rewards), np.stack(ends), v_next, lc,
                                  np.stack(end_values) if end_values else None,
                                  [torch.stack(masks).to(dev, vs.dtype)])
-        return terms, rec, state, finals
+        return terms, state, finals
+
+    def window_grads(self, loss: torch.Tensor, phi: dict[str, torch.Tensor],
+                     views: ViewBases, entries: list[Any]) -> list[torch.Tensor]:
+        """grad_phi^s of the window's loss for every slot, (B, ...) per parameter.
+
+        The view embeddings' weights enter only through their products W x (constant
+        inputs), evaluated once per window: their gradients are sum_t u_t x_t^T from the
+        output gradients (:func:`~geonav.policy.batched.core.layer_grads`). So are every
+        layer's in first order (``entries``: all the window's recorded maps); in second
+        order the other layers' gradients come from autograd, through the inner steps.
+        """
+        names = list(phi)
+        leaves = views.leaves()
+        if entries:
+            entries = [en for en in entries if en[0] not in ("obs_embed", "target_embed")]
+            ys = list({id(y): y for _, _, y, _ in entries}.values())
+            gs = torch.autograd.grad(loss, ys + leaves, allow_unused=True)
+            out = layer_grads(entries, {id(y): g for y, g in zip(ys, gs, strict=False)})
+            out.update(views.grads(gs[len(ys):]))
+            return [out[n] if n in out else torch.zeros_like(phi[n]) for n in names]
+        direct = [n for n in names if n not in VIEW_PARAMS]
+        gs = grads_of(loss, [phi[n] for n in direct] + leaves)
+        out = dict(zip(direct, gs, strict=False))
+        out.update(views.grads(gs[len(direct):]))
+        return [out[n] for n in names]
 
     def update(self) -> tuple[list[dict[str, Any]], dict[str, float]]:
         """One meta-iteration: an episode per slot on per-task parameters, the meta step."""
@@ -282,13 +341,13 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
         if self._ran:  # the next tasks' episodes start here, so a checkpoint taken after
             self.next_round(self._ran)  # an update resumes with the same start draws
             self.t_episode[:] = time.perf_counter()
-        n, k = self.schedule()
+        k = self.schedule()[1]
+        second_order = bool(getattr(cfg, "second_order", False)) and k > 1
         dtype = values_dtype(self)
         n_jobs = min(b, cfg.episodes - self.episodes_done)
         alive = np.arange(b) < n_jobs
-        phi, opt = self.task_parameters()
+        phi, opt, task_grads = self.task_parameters()
         leaves = list(phi.values())
-        task_grads = [torch.zeros_like(x) for x in leaves]
         z = torch.zeros(b, self.net_cfg.lstm_size, dtype=dtype, device=dev)
         state: State = (z, z.clone(), torch.zeros(b, self.net_cfg.n_actions, dtype=dtype,
                                                   device=dev))
@@ -300,10 +359,13 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
         while alive.any():  # one window of up to K segments, then each slot's Adam step
             adapted: Adapted = {}
             window: list[torch.Tensor] = []
+            entries: list[Any] = []
+            views = self.view_bases(phi)
             adapt += alive
             for j in range(k):
                 live_segments += int(alive.sum())
-                terms, rec, state, fin = self.segment(phi, adapted, state, alive, n, k > 1)
+                rec = Recorder(gram=self.gram) if (k > 1 or not second_order) else None
+                terms, state, fin = self.segment(phi, adapted, state, alive, views, rec)
                 for f in fin:
                     f["inner_updates"] = int(inner[f["slot"]])
                     f["adaptive_updates"] = int(adapt[f["slot"]])
@@ -311,15 +373,17 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
                 window.append(terms.total)
                 pl, vl = pl + float(terms.policy.detach()), vl + float(terms.value.detach())
                 ent += float(terms.entropy.detach())
+                if rec is not None and not second_order:
+                    entries += rec.entries
                 if not alive.any():
                     break
                 if j < k - 1:
                     assert rec is not None
                     live = torch.from_numpy(alive).to(dev, dtype)
                     adapted = rec.inner_factors(terms.total, adapted, cfg.alpha,
-                                                create_graph=cfg.second_order, weights=live)
+                                                create_graph=second_order, weights=live)
                     inner += alive
-            grads = grads_of(torch.stack(window).sum(), leaves)   # (B, ...) per task
+            grads = self.window_grads(torch.stack(window).sum(), phi, views, entries)
             torch._foreach_add_(task_grads, grads)                 # g_i: unclipped
             clip_per_slot(grads, cfg.max_grad_norm)
             for x, g in zip(leaves, grads, strict=True):
@@ -327,10 +391,12 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
             opt.step()
             state = detach_state(state)
         if self.on_gradients is not None:
-            self.on_gradients([g[:n_jobs].sum(0) for g in task_grads])
+            self.on_gradients([psi_layout(g[:n_jobs].sum(0)) for g in task_grads])
+        total = [psi_layout(g[:n_jobs].sum(0)) for g in task_grads]
         entry = meta_step(self.optimizer, self.params_list,
-                          [[g[j] for g in task_grads] for j in range(n_jobs)],
-                          self.meta_cfg.meta_max_grad_norm, keep=self.keep_task_grads)
+                          [[psi_layout(g[j]) for g in task_grads] for j in range(n_jobs)]
+                          if self.keep_task_grads else [], self.meta_cfg.meta_max_grad_norm,
+                          keep=self.keep_task_grads, total=total)
         self.meta_updates += 1
         self.update_log.append({"tasks": self.venv.slot_tasks[:n_jobs].tolist(), **entry})
         for f in finals:
@@ -342,6 +408,75 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
         segs = max(live_segments, 1)
         return finals, {"policy_loss": pl / segs, "value_loss": vl / segs,
                         "entropy": ent / max(sum(f["length"] for f in finals), 1)}
+
+
+VIEW_PARAMS = ("obs_embed.weight", "obs_embed.bias", "target_embed.weight",
+               "target_embed.bias")
+
+
+class ViewBases:
+    """The view embeddings' W_s x + b_s of one window under per-slot phi^s, without graph,
+    and their gradients from the output gradients.
+
+    The current view's are a table of every view of the slot's (pinned) task, one batched
+    product per window, when the tasks are small; else one per step. Each step's rows and
+    the window's target rows become leaves whose gradients give
+    dW_s = sum_t u_t x_t^T (the inputs are constant feature rows).
+    """
+
+    def __init__(self, phi: dict[str, torch.Tensor], table: torch.Tensor,
+                 venv: LatticeVecEnv, schedule: tuple[int, int]) -> None:
+        self.phi, self.table = phi, table
+        b = len(venv.slot_tasks)
+        self.slots = torch.arange(b, device=table.device)
+        tasks = venv.task
+        sizes = venv.nx[tasks] * venv.ny[tasks]
+        self.first = torch.from_numpy(venv.offsets[tasks]).to(table.device)
+        w, bias = phi["obs_embed.weight"].detach(), phi["obs_embed.bias"].detach()
+        self.pre: torch.Tensor | None = None
+        if int(sizes.max()) <= 4 * schedule[0] * schedule[1]:  # cheaper than per step
+            rows = self.first[:, None] + torch.arange(int(sizes.max()), device=table.device)
+            rows = torch.minimum(rows, torch.from_numpy(venv.offsets[tasks] + sizes - 1)
+                                 .to(table.device)[:, None])
+            self.pre = torch.baddbmm(bias.unsqueeze(1), table[rows], w)
+        tgt = torch.from_numpy(venv.target_view[tasks]).to(table.device)
+        self.target_rows = tgt
+        self.target = torch.baddbmm(phi["target_embed.bias"].detach().unsqueeze(1),
+                                    table[tgt].unsqueeze(1),
+                                    phi["target_embed.weight"].detach()).squeeze(1)
+        self.target.requires_grad_()
+        self.obs_leaves: list[torch.Tensor] = []
+        self.obs_rows: list[torch.Tensor] = []
+
+    def obs(self, vi: torch.Tensor, leaf: bool) -> torch.Tensor:
+        """(B, E) W_s x + b_s of the slots' current views ``vi`` (with ``leaf``: kept for
+        the window's gradient)."""
+        if self.pre is not None:
+            y = self.pre[self.slots, vi - self.first]
+        else:
+            w, bias = self.phi["obs_embed.weight"], self.phi["obs_embed.bias"]
+            y = torch.baddbmm(bias.detach().unsqueeze(1), self.table[vi].unsqueeze(1),
+                              w.detach()).squeeze(1)
+        if not leaf:
+            return y
+        y = y.detach().requires_grad_()
+        self.obs_leaves.append(y)
+        self.obs_rows.append(vi)
+        return y
+
+    def leaves(self) -> list[torch.Tensor]:
+        return [*self.obs_leaves, self.target]
+
+    def grads(self, gs: Any) -> dict[str, torch.Tensor]:
+        """Parameter name -> (B, ...) gradient from the gradients of :meth:`leaves`."""
+        z = torch.zeros_like(self.target)
+        u = torch.stack([z if g is None else g for g in gs[:-1]], 1)        # (B, T, E)
+        x = self.table[torch.stack(self.obs_rows, 1)]                      # (B, T, F)
+        ut = z if gs[-1] is None else gs[-1]
+        return {"obs_embed.weight": torch.bmm(x.transpose(1, 2), u),          # (B, F, E)
+                "obs_embed.bias": u.sum(1),
+                "target_embed.weight": self.table[self.target_rows].unsqueeze(-1)
+                * ut.unsqueeze(1), "target_embed.bias": ut}
 
 
 class BatchedMetaA3C(BatchedMetaISAR):
