@@ -16,7 +16,8 @@ Rows the batched engine does not implement yet (packed runs other than A3C) prin
 :class:`~geonav.policy.batched.packed.PackedA3C`. In the meta-training rows (ISAR base
 second and first order, A3C base, SAVN base; :mod:`geonav.policy.batched.meta`) B is the
 meta-batch, every task the bench task, and ``async`` is
-:class:`~geonav.policy.meta.MetaTrainer` in one process. Last, the memory of the observation tables of the whole-scene
+:class:`~geonav.policy.meta.MetaTrainer` in one process; the ISAR and A3C bases stop at
+B = 64 (``META_MAX_BATCH``). Last, the memory of the observation tables of the whole-scene
 15 m task of a 1.2 km scene (images and frozen features) with B = 256 slots, and the
 process's peak RSS.
 
@@ -41,6 +42,10 @@ from geonav.policy.config import A3CConfig, NetConfig
 from geonav.testing import textured_scene, tiny_taskset
 
 BATCHES = (1, 16, 64, 256)
+META_MAX_BATCH = 64
+"""Meta-training with the ISAR and A3C bases keeps B copies of the network, their
+gradients, task gradients and Adam moments (about 12 MB a slot for the bench network):
+B = 256 would take 3 GB, so those rows stop at 64."""
 
 
 def env_factory(max_steps: int = 70) -> functools.partial:
@@ -122,6 +127,9 @@ def run_batched(kind: str, batch: int, seconds: float) -> tuple[float, float] | 
     algo, net, cfg, ms = configs(kind)
     if algo.startswith("meta-"):
         from geonav.policy.batched.meta import BATCHED_META
+
+        if algo != "meta-savn" and batch > META_MAX_BATCH:
+            return None
         from geonav.policy.meta_config import MetaConfig
 
         clock = Clock(max(3, batch), seconds)

@@ -356,6 +356,10 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
         finals: list[dict[str, Any]] = []
         pl = vl = ent = 0.0
         live_segments = 0
+        # first order: every weight gradient comes from the recorded output gradients, so
+        # the forward need not track the weights (the biases keep every output in the graph)
+        act = phi if second_order else {n: x.detach() if x.dim() == 3 else x
+                                        for n, x in phi.items()}
         while alive.any():  # one window of up to K segments, then each slot's Adam step
             adapted: Adapted = {}
             window: list[torch.Tensor] = []
@@ -365,7 +369,7 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
             for j in range(k):
                 live_segments += int(alive.sum())
                 rec = Recorder(gram=self.gram) if (k > 1 or not second_order) else None
-                terms, state, fin = self.segment(phi, adapted, state, alive, views, rec)
+                terms, state, fin = self.segment(act, adapted, state, alive, views, rec)
                 for f in fin:
                     f["inner_updates"] = int(inner[f["slot"]])
                     f["adaptive_updates"] = int(adapt[f["slot"]])
