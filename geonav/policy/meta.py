@@ -55,8 +55,8 @@ def meta_step(optimizer: torch.optim.Optimizer, psi: list[torch.Tensor],
     the task gradients). ``total``: the sum, when the caller has it (consumed)."""
     if total is None:
         total = [torch.zeros_like(p) for p in psi]
-        for g in grads:
-            torch._foreach_add_(total, g)
+        for task in grads:
+            torch._foreach_add_(total, task)
     entry: dict[str, Any] = {}
     if keep:
         entry["psi_before"] = [p.detach().clone() for p in psi]

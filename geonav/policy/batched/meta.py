@@ -199,6 +199,8 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
 
     base_algo = "isar"
     adapted_weights = True
+    cfg: Any
+    """An ISARConfig (ISAR base) or an A3CConfig (A3C base)."""
 
     def __init__(self, env_factory: Any, net_cfg: Any, base_cfg: Any,
                  meta_cfg: MetaConfig | None = None, **kwargs: Any) -> None:
@@ -330,9 +332,9 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
             out.update(views.grads(gs[len(ys):]))
             return [out[n] if n in out else torch.zeros_like(phi[n]) for n in names]
         direct = [n for n in names if n not in VIEW_PARAMS]
-        gs = grads_of(loss, [phi[n] for n in direct] + leaves)
-        out = dict(zip(direct, gs, strict=False))
-        out.update(views.grads(gs[len(direct):]))
+        direct_gs = grads_of(loss, [phi[n] for n in direct] + leaves)
+        out = dict(zip(direct, direct_gs, strict=False))
+        out.update(views.grads(direct_gs[len(direct):]))
         return [out[n] for n in names]
 
     def update(self) -> tuple[list[dict[str, Any]], dict[str, float]]:
