@@ -60,7 +60,6 @@ from geonav.policy.batched.savn import BatchedSAVNTrainer
 from geonav.policy.batched.trainer import BatchedTrainer
 from geonav.policy.callbacks import Callback
 from geonav.policy.config import A3CConfig, to_dict
-from geonav.policy.functional import grads_of
 from geonav.policy.isar import gradient_path
 from geonav.policy.losses import LossTerms
 from geonav.policy.meta import TASK_GRADIENT, checkpoint_after_update, meta_step
@@ -313,29 +312,35 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
         return terms, state, finals
 
     def window_grads(self, loss: torch.Tensor, phi: dict[str, torch.Tensor],
-                     views: ViewBases, entries: list[Any]) -> list[torch.Tensor]:
+                     views: ViewBases, entries: list[Any], second_order: bool
+                     ) -> list[torch.Tensor]:
         """grad_phi^s of the window's loss for every slot, (B, ...) per parameter.
 
-        The view embeddings' weights enter only through their products W x (constant
-        inputs), evaluated once per window: their gradients are sum_t u_t x_t^T from the
-        output gradients (:func:`~geonav.policy.batched.core.layer_grads`). So are every
-        layer's in first order (``entries``: all the window's recorded maps); in second
-        order the other layers' gradients come from autograd, through the inner steps.
+        A weight that enters the loss only through recorded products x W (no inner step
+        differentiates through it) has the gradient sum_t x_t^T u_t from the output
+        gradients u (:func:`~geonav.policy.batched.core.layer_grads`), one batched
+        product per layer instead of an outer product per step: the view embeddings
+        (constant inputs, evaluated once per window), every layer in first order, and in
+        second order the last segment's uses (``entries``: those recorded maps, run with
+        the weights detached); autograd gives the rest, through the inner steps.
         """
         names = list(phi)
+        entries = [en for en in entries if en[0] not in ("obs_embed", "target_embed")]
+        ys = list({id(y): y for _, _, y, _ in entries}.values())
+        direct = [n for n in names if n not in VIEW_PARAMS] if second_order else []
         leaves = views.leaves()
-        if entries:
-            entries = [en for en in entries if en[0] not in ("obs_embed", "target_embed")]
-            ys = list({id(y): y for _, _, y, _ in entries}.values())
-            gs = torch.autograd.grad(loss, ys + leaves, allow_unused=True)
-            out = layer_grads(entries, {id(y): g for y, g in zip(ys, gs, strict=False)})
-            out.update(views.grads(gs[len(ys):]))
-            return [out[n] if n in out else torch.zeros_like(phi[n]) for n in names]
-        direct = [n for n in names if n not in VIEW_PARAMS]
-        direct_gs = grads_of(loss, [phi[n] for n in direct] + leaves)
-        out = dict(zip(direct, direct_gs, strict=False))
-        out.update(views.grads(direct_gs[len(direct):]))
-        return [out[n] for n in names]
+        gs = torch.autograd.grad(loss, [phi[n] for n in direct] + ys + leaves,
+                                 allow_unused=True)
+        out = {n: torch.zeros_like(phi[n]) if g is None else g
+               for n, g in zip(direct, gs, strict=False)}
+        recorded = layer_grads(entries, {id(y): g for y, g in
+                                         zip(ys, gs[len(direct):], strict=False)})
+        for n, g in recorded.items():
+            if not (second_order and g.dim() == 2):  # autograd has the biases' uses
+                out[n] = out[n] + g if n in out else g
+        out.update(views.grads(gs[len(direct) + len(ys):]))
+        # contiguous: the fused Adam steps a parameter with its gradient's memory order
+        return [out[n].contiguous() if n in out else torch.zeros_like(phi[n]) for n in names]
 
     def update(self) -> tuple[list[dict[str, Any]], dict[str, float]]:
         """One meta-iteration: an episode per slot on per-task parameters, the meta step."""
@@ -358,10 +363,10 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
         finals: list[dict[str, Any]] = []
         pl = vl = ent = 0.0
         live_segments = 0
-        # first order: every weight gradient comes from the recorded output gradients, so
-        # the forward need not track the weights (the biases keep every output in the graph)
-        act = phi if second_order else {n: x.detach() if x.dim() == 3 else x
-                                        for n, x in phi.items()}
+        # where every weight gradient comes from the recorded output gradients (first
+        # order; the last segment of a window in second order), the forward need not
+        # track the weights (the biases keep every output in the graph)
+        untracked = {n: x.detach() if x.dim() == 3 else x for n, x in phi.items()}
         while alive.any():  # one window of up to K segments, then each slot's Adam step
             adapted: Adapted = {}
             window: list[torch.Tensor] = []
@@ -370,8 +375,10 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
             adapt += alive
             for j in range(k):
                 live_segments += int(alive.sum())
-                rec = Recorder(gram=self.gram) if (k > 1 or not second_order) else None
-                terms, state, fin = self.segment(act, adapted, state, alive, views, rec)
+                last = j == k - 1
+                rec = Recorder(gram=self.gram)
+                terms, state, fin = self.segment(untracked if last or not second_order
+                                                 else phi, adapted, state, alive, views, rec)
                 for f in fin:
                     f["inner_updates"] = int(inner[f["slot"]])
                     f["adaptive_updates"] = int(adapt[f["slot"]])
@@ -379,17 +386,17 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
                 window.append(terms.total)
                 pl, vl = pl + float(terms.policy.detach()), vl + float(terms.value.detach())
                 ent += float(terms.entropy.detach())
-                if rec is not None and not second_order:
+                if last or not second_order:
                     entries += rec.entries
                 if not alive.any():
                     break
-                if j < k - 1:
-                    assert rec is not None
+                if not last:
                     live = torch.from_numpy(alive).to(dev, dtype)
                     adapted = rec.inner_factors(terms.total, adapted, cfg.alpha,
                                                 create_graph=second_order, weights=live)
                     inner += alive
-            grads = self.window_grads(torch.stack(window).sum(), phi, views, entries)
+            grads = self.window_grads(torch.stack(window).sum(), phi, views, entries,
+                                      second_order)
             torch._foreach_add_(task_grads, grads)                 # g_i: unclipped
             clip_per_slot(grads, cfg.max_grad_norm)
             for x, g in zip(leaves, grads, strict=True):
