@@ -260,3 +260,54 @@ def test_paper_tasks_are_not_solved_by_chance():
     cfg = load_config(Path(__file__).resolve().parent.parent / "configs" / "paper.toml")
     for key, spec in cfg.tasks.items():
         assert spec.max_random_walk is not None and spec.max_random_walk <= 0.05, key
+
+
+def test_a_part_makes_only_its_inputs_and_resumes_past_edits_elsewhere(tmp_path):
+    """--only PART synthesises only the scenes and task sets its stages train on, and an
+    edit of a stage outside the part does not block resuming it (issue 12: parts of
+    configs/paper.toml are run one at a time)."""
+    from geonav.experiments.runner import _experiment_part, prepare_inputs
+
+    extra = TINY.replace("EPISODES", "20") + """
+[scenes.C]
+synthetic = "wild"
+size_m = 300.0
+gsd_m = 1.0
+
+[tasks.C_target]
+scene = "C"
+kind = "meta"
+size_m = 45.0
+alt_m = 60.0
+step_m = 15.0
+max_steps = 15
+obs_size_px = 24
+
+[stages.wild]
+mode = "train"
+tasks = "C_target"
+algo = "a3c"
+episodes = 20
+workers = 0
+
+[[compare]]
+name = "wild"
+part = "wild"
+methods = ["wild"]
+"""
+    import tomllib
+
+    cfg = parse_config(tomllib.loads(extra), "extra")
+    stages = cfg.stages_for(["wild"])
+    assert stages == ["wild"]
+    scenes, tasks = prepare_inputs(cfg, tmp_path, stages=stages)
+    assert set(scenes) == {"C"} and set(tasks) == {"C_target"}
+    assert sorted(p.name for p in (tmp_path / "scenes").iterdir()) == ["C"]
+    edited = tomllib.loads(extra)
+    edited["stages"]["scratch"]["lr"] = 0.01  # a stage of another part
+    other = parse_config(edited, "edited")
+    assert _experiment_part(cfg.to_dict(), stages) == _experiment_part(other.to_dict(), stages)
+    assert _experiment_part(cfg.to_dict()) != _experiment_part(other.to_dict())
+    edited["stages"]["wild"]["lr"] = 0.01  # the part's own stage: refused to resume
+    mine = parse_config(edited, "mine")
+    assert _experiment_part(cfg.to_dict(), stages) != _experiment_part(mine.to_dict(), stages)

@@ -94,12 +94,15 @@ def unit_dir(root: Path, unit: Unit) -> Path:
 
 def prepare_inputs(cfg: ExperimentConfig, root: Path,
                    progress: Callable[[str, float], None] | None = None,
-                   shared_root: Path | None = None
+                   shared_root: Path | None = None,
+                   stages: list[str] | None = None,
                    ) -> tuple[dict[str, str], dict[str, str]]:
     """Make (or reuse) the scene packages and task sets; returns key -> path maps.
 
     ``shared_root`` (a sweep's folder): inputs go there under names that carry a hash
     of their spec, so variants with the same scene or task set share one copy.
+    ``stages``: make only the task sets these stages train on, and their scenes (a run
+    of some parts of a config does not synthesise the scenes of the others).
     """
     from geonav.demo import ensure_scene
 
@@ -111,8 +114,14 @@ def prepare_inputs(cfg: ExperimentConfig, root: Path,
         blob = json.dumps([asdict(spec), extra], sort_keys=True, default=str)
         return f"{key}-{hashlib.sha1(blob.encode()).hexdigest()[:8]}"
 
+    task_keys = list(cfg.tasks) if stages is None else \
+        sorted({cfg.stages[k].tasks for k in stages})
+    scene_keys = list(cfg.scenes) if stages is None else \
+        sorted({cfg.tasks[k].scene for k in task_keys})
     scenes: dict[str, str] = {}
     for key, spec in cfg.scenes.items():
+        if key not in scene_keys:
+            continue
         if spec.path:
             scenes[key] = str(Path(spec.path).resolve())
         else:
@@ -122,6 +131,8 @@ def prepare_inputs(cfg: ExperimentConfig, root: Path,
             scenes[key] = str(out.resolve())
     tasks: dict[str, str] = {}
     for key, tspec in cfg.tasks.items():
+        if key not in task_keys:
+            continue
         if tspec.path:
             tasks[key] = str(Path(tspec.path).resolve())
             continue
@@ -309,12 +320,14 @@ def _open_run(cfg: ExperimentConfig, out_root: str | os.PathLike[str], only: lis
     root.mkdir(parents=True, exist_ok=True)
     previous = _read_json(root / "config.json")
     resolved = cfg.to_dict()
-    if previous is not None and _experiment_part(previous) != _experiment_part(resolved):
+    stage_keys = cfg.stages_for(only)
+    if previous is not None and _experiment_part(previous, stage_keys) != \
+            _experiment_part(resolved, stage_keys):
         raise ConfigError(f"{root} holds a run of a different config; use another name or "
                           "remove the folder")
     _write_json(root / "config.json", resolved)
-    scenes, tasks = prepare_inputs(cfg, root, progress, shared_inputs)
-    stage_keys = cfg.stages_for(only)
+    scenes, tasks = prepare_inputs(cfg, root, progress, shared_inputs,
+                                   stage_keys if only else None)
     units = [Unit(s, seed) for s in stage_keys for seed in cfg.seeds]
     return _Run(cfg, root, stage_keys, units, scenes, tasks)
 
@@ -551,9 +564,19 @@ def _collect(run: _Run, u: Unit, fut: Future, retries_allowed: int,
                               run=run.cfg.name))
 
 
-def _experiment_part(d: dict[str, Any]) -> Any:
-    # What must match to resume: everything that changes the runs' meaning.
-    return {k: d.get(k) for k in ("scenes", "tasks", "stages", "convergence")}
+def _experiment_part(d: dict[str, Any], stages: list[str] | None = None) -> Any:
+    """What must match to resume: everything that changes the runs' meaning; with
+    ``stages``, only those stages, their task sets and scenes (editing a part that is not
+    being run does not block resuming the others)."""
+    if stages is None:
+        return {k: d.get(k) for k in ("scenes", "tasks", "stages", "convergence")}
+    st = {k: (d.get("stages") or {}).get(k) for k in stages}
+    tk = sorted({v["tasks"] for v in st.values() if v})
+    tasks = {k: (d.get("tasks") or {}).get(k) for k in tk}
+    sc = sorted({v["scene"] for v in tasks.values() if v})
+    return {"stages": st, "tasks": tasks, "scenes": {k: (d.get("scenes") or {}).get(k)
+                                                     for k in sc},
+            "convergence": d.get("convergence")}
 
 
 def _payload(cfg: ExperimentConfig, root: Path, u: Unit, scenes: dict[str, str],
