@@ -182,10 +182,10 @@ class BatchedISARTrainer(BatchedTrainer):
                 adapted = rec.inner_factors(mine.total, adapted, cfg.alpha,
                                             create_graph=cfg.second_order, weights=live)
                 self.inner += (~self.fresh).cpu().numpy()
-        self.step_optimizer(torch.stack(window).sum() / self.batch)
+        self.step_optimizer(torch.stack(window).sum() / self.run_batch)
         self.adapt += 1
         self.state = detach_state(state)
-        b = float(self.batch)
+        b = float(self.run_batch)
         terms = LossTerms(torch.tensor(0.0), torch.tensor(pl / b), torch.tensor(vl / b),
                           torch.tensor(ent / b))
         return finals, loss_stats(terms, cfg.n_steps * cfg.k_segments)
