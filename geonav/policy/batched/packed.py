@@ -195,8 +195,11 @@ class PackedTrainer(BatchedTrainer):
         b = self.run_batch
         try:
             self._setup()
-            for m in self.members:
+            for m, (cbs, result) in zip(self.members, begun, strict=True):
                 m.packed_done = m.episodes_done >= m.cfg.episodes  # type: ignore[attr-defined]
+                if m.packed_done:  # resumed at its budget: only its final files are left
+                    m._final_rng = m.rng_snapshot()
+                    m.finish_training(cbs, result)
             while not all(m.packed_done for m in self.members):  # type: ignore[attr-defined]
                 finals, stats = self.update()
                 for f in finals:
