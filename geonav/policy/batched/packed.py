@@ -64,6 +64,8 @@ class StackedVecEnv:
         self.per_run = self.venvs[0].n_slots
         self.n_slots = self.per_run * len(self.venvs)
         self.n_views = self.venvs[0].n_views
+        self.env_steps = 0
+        """Slot steps taken so far (benchmarks)."""
 
     @property
     def view_index(self) -> np.ndarray:
@@ -76,6 +78,7 @@ class StackedVecEnv:
     def step(self, actions: Any, *, autoreset: bool = True) -> StepResult:
         a = np.asarray(actions).reshape(len(self.venvs), self.per_run)
         parts = [v.step(a[i], autoreset=autoreset) for i, v in enumerate(self.venvs)]
+        self.env_steps += self.n_slots
         final = []
         for i, res in enumerate(parts):
             for f in res.final:
