@@ -47,13 +47,14 @@ def test_two_packed_runs_equal_the_runs_alone(algo):
     driver = pack(members)
     driver._setup()
     for _ in range(3):
-        driver.update()
+        _, stats = driver.update()
     moved = 0.0
     for i, seed in enumerate(SEEDS):
         alone = member(seed)
         alone._setup()
         for _ in range(3):
-            alone.update()
+            _, alone_stats = alone.update()
+        assert stats[i] == pytest.approx(alone_stats, rel=1e-9, abs=1e-12)  # loss columns
         mine = dict(members[i].model.named_parameters())
         other = dict(members[1 - i].model.named_parameters())
         for n, p in alone.model.named_parameters():

@@ -95,9 +95,11 @@ class BatchedISARTrainer(BatchedTrainer):
         return rec
 
     def segment(self, params: Any, adapted: Adapted, state: Any
-                ) -> tuple[LossTerms, LossTerms, Recorder, Adapted, Any, list[dict[str, Any]]]:
-        """N lock-step steps with the graph: (all-steps loss, current-episode loss,
-        recorder, adapted weights (finished slots reset to phi), state, finished episodes)."""
+                ) -> tuple[torch.Tensor, list[LossTerms], LossTerms, Recorder, Adapted, Any,
+                           list[dict[str, Any]]]:
+        """N lock-step steps with the graph: (all-steps loss, its terms per run,
+        current-episode loss, recorder, adapted weights (finished slots reset to phi),
+        state, finished episodes)."""
         cfg, e, dev = self.cfg, self.net_cfg.embed_dim, self.device
         n, b = cfg.n_steps, self.batch
         rec = Recorder(gram=self.gram)
@@ -152,16 +154,18 @@ class BatchedISARTrainer(BatchedTrainer):
                                bootstrap, ends, lc.gamma, lc.tau, end_values)
         ret_t = torch.from_numpy(ret).to(dev, vs.dtype)
         adv_t = torch.from_numpy(adv).to(dev, vs.dtype)
-        full = policy_value_terms(lg, vs, acts, ret_t, adv_t, lc)
+        runs = [policy_value_terms(lg[:, s], vs[:, s], acts[:, s], ret_t[:, s], adv_t[:, s], lc)
+                for s in self.run_slices()]  # one run; one per run when packed
+        total = torch.stack([r.total for r in runs]).sum()
         mine = policy_value_terms(lg, vs, acts, ret_t, adv_t, lc, weights=current)
         if tlogp:  # + lambda KL(pi_T || pi_theta) in every L_int, lambda of each episode
             lam = torch.tensor(lams, dtype=lg.dtype, device=dev)                  # (N, B)
             kl = kl_terms(torch.stack(tlogp).to(lg.dtype), lg) * lam
-            full = replace(full, total=full.total + kl.sum())
+            total = total + kl.sum()
             mine = replace(mine, total=mine.total + (kl * current).sum())
-        return full, mine, rec, adapted, state, finals
+        return total, runs, mine, rec, adapted, state, finals
 
-    def update(self) -> tuple[list[dict[str, Any]], dict[str, float]]:
+    def update(self) -> tuple[list[dict[str, Any]], Any]:
         """One window of K segments and its adaptive update."""
         cfg = self.cfg
         params = self.params()
@@ -169,14 +173,13 @@ class BatchedISARTrainer(BatchedTrainer):
         state = self.state
         window: list[torch.Tensor] = []
         finals: list[dict[str, Any]] = []
-        pl = vl = ent = 0.0
+        sums = np.zeros((len(self.run_slices()), 3))  # policy, value, entropy per run
         for k in range(cfg.k_segments):
-            full, mine, rec, adapted, state, fin = self.segment(params, adapted, state)
+            total, runs, mine, rec, adapted, state, fin = self.segment(params, adapted, state)
             finals += fin
-            window.append(full.total)
-            pl += float(full.policy.detach())
-            vl += float(full.value.detach())
-            ent += float(full.entropy.detach())
+            window.append(total)
+            sums += [[float(r.policy.detach()), float(r.value.detach()),
+                      float(r.entropy.detach())] for r in runs]
             if k < cfg.k_segments - 1:
                 live = (~self.fresh).to(values_dtype(self))
                 adapted = rec.inner_factors(mine.total, adapted, cfg.alpha,
@@ -186,9 +189,10 @@ class BatchedISARTrainer(BatchedTrainer):
         self.adapt += 1
         self.state = detach_state(state)
         b = float(self.run_batch)
-        terms = LossTerms(torch.tensor(0.0), torch.tensor(pl / b), torch.tensor(vl / b),
-                          torch.tensor(ent / b))
-        return finals, loss_stats(terms, cfg.n_steps * cfg.k_segments)
+        stats = [loss_stats(LossTerms(torch.tensor(0.0), torch.tensor(pl / b),
+                                      torch.tensor(vl / b), torch.tensor(ent / b)),
+                            cfg.n_steps * cfg.k_segments) for pl, vl, ent in sums]
+        return finals, stats[0] if len(stats) == 1 else stats
 
 
 GRAM_MAX_VIEWS = 8192
