@@ -581,7 +581,8 @@ def _submit_ready(runs: list[_Run], backend: Backend,
                 if len(group) > 1:
                     payloads = [_payload(run.cfg, run.root, m, run.scenes, run.tasks, run.done)
                                 for m in group]
-                    fut = backend.submit(run_group, payloads, resources={"cpus": 1})
+                    fut = backend.submit(run_group, payloads,
+                                         resources={"cpus": max(1, stage.workers)})
                     running[fut] = (run, group)
                     busy.update((id(run), m) for m in group)
                     for m in group:
