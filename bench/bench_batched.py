@@ -11,12 +11,15 @@ warm-up:
 * ``batched B``: the batched engine with B slots (B = 1, 16, 64, 256);
 * ``ratio``: batched per CPU-second / async per CPU-second.
 
-Rows the batched engine does not implement yet (meta-training with the ISAR base; packed
-runs other than A3C, PPO and ISAR) print ``n/a``; ``packed 4x16`` is 4 independent runs
-of 16 slots each in one process batch (:mod:`geonav.policy.batched.packed`, each run its
-own parameters, Adam and per-run batch of 16), to read beside ``B=16`` (one such run)
-and ``B=64`` (one run of the same process batch); the batched meta-SAVN row's B is the
-meta-batch. Last, the memory of the observation tables of the whole-scene
+Rows the batched engine does not implement yet (packed runs other than A3C, PPO and
+ISAR) print ``n/a``; ``packed 4x16`` is 4 independent runs of 16 slots each in one
+process batch (:mod:`geonav.policy.batched.packed`, each run its own parameters, Adam and
+per-run batch of 16), to read beside ``B=16`` (one such run) and ``B=64`` (one run of
+the same process batch). In the meta-training rows (ISAR base
+second and first order, A3C base, SAVN base; :mod:`geonav.policy.batched.meta`) B is the
+meta-batch, every task the bench task, and ``async`` is
+:class:`~geonav.policy.meta.MetaTrainer` in one process; the ISAR and A3C bases stop at
+B = 64 (``META_MAX_BATCH``). Last, the memory of the observation tables of the whole-scene
 15 m task of a 1.2 km scene (images and frozen features) with B = 256 slots, and the
 process's peak RSS.
 
@@ -41,6 +44,10 @@ from geonav.policy.config import A3CConfig, NetConfig
 from geonav.testing import textured_scene, tiny_taskset
 
 BATCHES = (1, 16, 64, 256)
+META_MAX_BATCH = 64
+"""Meta-training with the ISAR and A3C bases keeps B copies of the network, their
+gradients, task gradients and Adam moments (about 12 MB a slot for the bench network):
+B = 256 would take 3 GB, so those rows stop at 64."""
 
 
 def env_factory(max_steps: int = 70) -> functools.partial:
@@ -88,7 +95,9 @@ def configs(kind: str):
         "isar1": ("isar", frozen, ISARConfig(**common, second_order=False), 70),
         "savn": ("savn", frozen, SAVNConfig(**common), 70),
         "curriculum-stage": ("isar", frozen, ISARConfig(**common), 120),
-        "meta-isar": ("meta-isar", frozen, ISARConfig(**common), 70),
+        "meta-isar2": ("meta-isar", frozen, ISARConfig(**common, second_order=True), 70),
+        "meta-isar1": ("meta-isar", frozen, ISARConfig(**common, second_order=False), 70),
+        "meta-a3c": ("meta-a3c", frozen, A3CConfig(**common), 70),
         "meta-savn": ("meta-savn", frozen, SAVNConfig(**common), 70),
     }[kind]
 
@@ -118,16 +127,17 @@ def run_batched(kind: str, batch: int, seconds: float) -> tuple[float, float] | 
     from geonav.policy.engine import resolve
 
     algo, net, cfg, ms = configs(kind)
-    if algo == "meta-isar":
-        return None
-    if algo == "meta-savn":
-        from geonav.policy.batched.meta import BatchedMetaSAVN
+    if algo.startswith("meta-"):
+        from geonav.policy.batched.meta import BATCHED_META
+
+        if algo != "meta-savn" and batch > META_MAX_BATCH:
+            return None
         from geonav.policy.meta_config import MetaConfig
 
         clock = Clock(max(3, batch), seconds)
-        BatchedMetaSAVN(env_factory(ms), net, cfg, MetaConfig(episodes=10**7, batch_tasks=batch,
-                                                              checkpoint_every=0),
-                        callbacks=[clock], keep_records=False, tensorboard=False).train()
+        BATCHED_META[algo[5:]](env_factory(ms), net, cfg,
+                               MetaConfig(episodes=10**7, batch_tasks=batch, checkpoint_every=0),
+                               callbacks=[clock], keep_records=False, tensorboard=False).train()
         return clock.rates()
     choice = resolve(algo, "batched", net, cfg)
     if choice.engine != "batched":
@@ -197,7 +207,8 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
     kinds = args.only.split(",") if args.only else ["a3c", "a3c-cnn", "ppo", "isar2", "isar1",
-                                                      "savn", "meta-isar", "meta-savn",
+                                                      "savn", "meta-isar2", "meta-isar1",
+                                                      "meta-a3c", "meta-savn",
                                                       "curriculum-stage"]
     batches = [int(b) for b in args.batches.split(",")]
     head = f"{'row':17s} {'async wall':>10s} {'/cpu-s':>8s}"

@@ -16,8 +16,15 @@ in-memory copy of the scene instead (its arrays are pickled into every worker: t
 old behaviour), for comparison. A worker with a trivial Gymnasium env (CartPole) gives the
 interpreter's own share.
 
+``--augment K`` (default 8; 0 skips it) then measures the batched engine's observation
+tables with imagery randomisation (geonav.augment: K variants plus the clean one): for a
+meta-training set (15 regions of 10 x 10 cells at 300 m, the use it is meant for) and the
+whole-scene set, the feature table a frozen random encoder gives (what the learner keeps)
+and the growth of this process's peak RSS while building it (the V copies of the pixels
+are never held at once), against the same without augmentation.
+
 Usage: .venv/bin/python bench/bench_env_memory.py [--scene DIR] [--workers 1,2,4]
-       [--steps 400] [--in-memory] [--no-sb3]
+       [--steps 400] [--in-memory] [--no-sb3] [--augment K] [--only-augment]
 Prints figures; not a test.
 """
 
@@ -121,6 +128,54 @@ def report(label: str, rows: list[tuple[int, float, float, float]]) -> None:
         print(f"  {label}: PSS per extra worker {(t1 - t0) / (n1 - n0):.1f} MB")
 
 
+def peak_rss() -> int:
+    """Bytes of this process's peak resident set (VmHWM)."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) * 1024
+    return 0
+
+
+def reset_peak() -> None:
+    """Reset VmHWM to the current RSS (Linux: write 5 to clear_refs)."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+    except OSError:
+        pass
+
+
+def augment_tables(scene: Scene, whole, k: int) -> None:
+    """Feature-table size and peak-RSS growth with K imagery variants vs none."""
+    import time
+
+    from geonav.augment import AugmentConfig
+    from geonav.policy.config import NetConfig
+    from geonav.policy.encoders import build_frozen_encoder
+    from geonav.tasks import sample_meta_tasks
+    from geonav.vecenv import LatticeVecEnv
+
+    frozen = build_frozen_encoder(NetConfig(encoder="random"))
+    meta = sample_meta_tasks(scene, 15, size_m=150.0, alt_m=300.0, step_m=15.0, seed=0)
+    print(f"observation tables with imagery randomisation (K = {k} variants + clean, "
+          f"frozen random encoder, F = {frozen.out_dim}):")
+    for label, tasks in (("meta-training set (15 x 10x10 at 300 m)", meta),
+                         ("whole-scene set (75/45/15 m)", whole)):
+        for aug in (None, AugmentConfig(variants=k)):
+            env = GeoNavEnv(scene, tasks)
+            venv = LatticeVecEnv(env, 1, augment=aug)
+            reset_peak()
+            before = peak_rss()
+            t0 = time.perf_counter()
+            feats = venv.feature_table(frozen)
+            dt = time.perf_counter() - t0
+            grow = peak_rss() - before
+            print(f"  {label}, {'K = ' + str(k) if aug else 'no augmentation'}: "
+                  f"{venv.n_views} views, features {feats.numel() * 4 / MB:7.1f} MB "
+                  f"(images would be {venv.table_bytes() / MB:7.1f} MB), peak RSS growth "
+                  f"{grow / MB:7.1f} MB, built in {dt:5.1f} s")
+            del feats, venv, env
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--scene", help="a scene package (default: synthesise residential 1100 m)")
@@ -129,6 +184,10 @@ def main() -> None:
     ap.add_argument("--in-memory", action="store_true",
                     help="also send an in-memory copy of the scene (arrays pickled per worker)")
     ap.add_argument("--no-sb3", action="store_true")
+    ap.add_argument("--augment", type=int, default=8, metavar="K",
+                    help="imagery variants for the table figures (0: skip them)")
+    ap.add_argument("--only-augment", action="store_true",
+                    help="only the imagery-randomisation table figures")
     args = ap.parse_args()
     counts = [int(c) for c in args.workers.split(",")]
     tmp = tempfile.mkdtemp()
@@ -143,6 +202,10 @@ def main() -> None:
     shape = tasks.tasks[0].lattice.shape
     print(f"scene {scene.name}: {scene.width}x{scene.height} px; whole-scene task set: "
           f"{len(tasks.tasks)} altitudes on a {shape[0]}x{shape[1]} lattice")
+    if args.augment > 0:
+        augment_tables(scene, tasks, args.augment)
+    if args.only_augment:
+        return
     env_fn = functools.partial(GeoNavEnv, scene, tasks, task_sampling="cycle")
     import pickle
 

@@ -442,6 +442,7 @@ def sample_meta_tasks(
     obstacles: ObstacleModel = ObstacleModel(),
     max_overlap: float = 0.5,
     min_coverage: float = DEFAULT_MIN_COVERAGE,
+    max_random_walk: float | None = None,
 ) -> TaskSet:
     """Sample ``count`` meta-tasks: square regions of ``size_m`` at ``alt_m``.
 
@@ -449,9 +450,13 @@ def sample_meta_tasks(
     margin the view from ``margin_alt_m`` (default ``alt_m``) needs, overlap
     each other by at most ``max_overlap`` of their area, and get a random free,
     reachable target whose view at ``alt_m`` has at least ``min_coverage`` valid
-    imagery (starts are held to the same). Reproducible by ``seed``.
+    imagery (starts are held to the same). With ``max_random_walk``, a target is kept
+    only when a uniform random walk succeeds from the task's starts at most that often
+    (:func:`geonav.difficulty.start_success`; a task that chance solves cannot show
+    learning). Reproducible by ``seed``.
     """
     camera = camera or Camera()
+    _check_chance_limit(max_random_walk)
     if count < 1:
         raise TaskError(f"count must be >= 1, got {count}")
     rng = np.random.default_rng(seed)
@@ -471,9 +476,12 @@ def sample_meta_tasks(
     while len(tasks) < count:
         attempts += 1
         if attempts > 200 * count:
+            chance = "" if max_random_walk is None else (
+                f" and random-walk success <= {max_random_walk:g} (more cells per region or "
+                "a smaller max_steps lower it)")
             raise TaskError(f"could only place {len(tasks)} of {count} meta-tasks with at most "
-                            f"{max_overlap:.0%} overlap in scene {scene.name!r}; ask for fewer "
-                            "or allow more overlap")
+                            f"{max_overlap:.0%} overlap{chance} in scene {scene.name!r}; ask "
+                            "for fewer or allow more overlap")
         x0 = _snap(rng.uniform(lo_x, hi_x), scene.gsd_m)
         y0 = _snap(rng.uniform(lo_y, hi_y), scene.gsd_m)
         x0, y0 = min(max(x0, lo_x), hi_x), min(max(y0, lo_y), hi_y)
@@ -492,15 +500,18 @@ def sample_meta_tasks(
         task = NavTask(f"meta-{len(tasks):02d}", "meta", region, step_m, alt_m,
                        (target[0], target[1]), max_steps, obstacles, min_coverage)
         try:
-            bind(task, scene, camera)
+            tm = bind(task, scene, camera)
         except TaskError:
+            continue
+        if not _chance_ok(tm, max_random_walk):
             continue
         tasks.append(task)
         regions.append(region)
     return TaskSet(scene.name, scene.scene_id, tasks, camera,
                    dict(sampler="meta", count=count, size_m=size_m, alt_m=alt_m, step_m=step_m,
                         seed=seed, margin_alt_m=margin_alt_m or alt_m,
-                        min_coverage=min_coverage))
+                        min_coverage=min_coverage, max_overlap=max_overlap,
+                        max_random_walk=max_random_walk))
 
 
 def whole_scene_tasks(
@@ -515,6 +526,7 @@ def whole_scene_tasks(
     camera: Camera | None = None,
     obstacles: ObstacleModel = ObstacleModel(),
     min_coverage: float = DEFAULT_MIN_COVERAGE,
+    max_random_walk: float | None = None,
 ) -> TaskSet:
     """One task per altitude on the same lattice with the same target (curriculum).
 
@@ -522,9 +534,12 @@ def whole_scene_tasks(
     altitude (or a centred square of ``size_m``). The target is a random cell
     that is free at every altitude, has at least ``min_coverage`` valid imagery
     in its view at every altitude, and lies in the largest connected free area at
-    the lowest altitude; starts are held to the same coverage.
+    the lowest altitude; starts are held to the same coverage. With ``max_random_walk``
+    the target is redrawn until a uniform random walk succeeds at most that often at
+    every altitude (see :func:`sample_meta_tasks`).
     """
     camera = camera or Camera()
+    _check_chance_limit(max_random_walk)
     margin = view_margin_m(max(alts_m), camera)
     sx0, sy0, sx1, sy1 = scene.bounds_m
     if region_m is None:
@@ -564,15 +579,37 @@ def whole_scene_tasks(
     if len(candidates) == 0:
         raise TaskError(f"no cell of region {region_m} is free, with {min_coverage:.0%} valid "
                         f"imagery in its view, at all of {list(alts_m)} m")
-    target = tuple(int(v) for v in candidates[rng.integers(len(candidates))])
-    tasks = [NavTask(f"scene@{alt:g}m", "scene", region_m, step_m, float(alt),
-                     (target[0], target[1]), max_steps, obstacles, min_coverage)
-             for alt in alts_m]
-    for task in tasks:
-        bind(task, scene, camera)
+    for _ in range(200):
+        target = tuple(int(v) for v in candidates[rng.integers(len(candidates))])
+        tasks = [NavTask(f"scene@{alt:g}m", "scene", region_m, step_m, float(alt),
+                         (target[0], target[1]), max_steps, obstacles, min_coverage)
+                 for alt in alts_m]
+        if all(_chance_ok(bind(task, scene, camera), max_random_walk) for task in tasks):
+            break
+    else:
+        raise TaskError(f"no target of region {region_m} keeps random-walk success <= "
+                        f"{max_random_walk:g} within {max_steps} steps; use a finer lattice "
+                        "or a smaller max_steps")
     return TaskSet(scene.name, scene.scene_id, tasks, camera,
                    dict(sampler="scene", alts_m=list(alts_m), step_m=step_m, seed=seed,
-                        min_coverage=min_coverage))
+                        min_coverage=min_coverage, max_random_walk=max_random_walk))
+
+
+def _check_chance_limit(limit: float | None) -> None:
+    if limit is not None and not 0.0 < limit <= 1.0:
+        raise TaskError(f"max_random_walk must lie in (0, 1], got {limit}")
+
+
+def _chance_ok(tm: TaskMap, limit: float | None) -> bool:
+    """True when ``limit`` is None or a uniform random walk succeeds at most ``limit``."""
+    if limit is None:
+        return True
+    from geonav.difficulty import start_success
+
+    try:
+        return float(start_success(tm)) <= limit
+    except TaskError:  # no start cell within the cap
+        return False
 
 
 def _overlap(a: Region, b: Region) -> float:

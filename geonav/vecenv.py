@@ -22,6 +22,22 @@ where a slot ended). Random draws come from one ``numpy`` generator per environm
 (``reset(seed=...)``), so a run is reproducible, but the draws are not the same as B
 separate GeoNavEnv instances' (the trajectories are equal for the same starts and
 actions).
+
+Imagery randomisation (:mod:`geonav.augment`): built on an env wrapped in
+:class:`geonav.wrappers.ImageryRandomisation` (or given ``augment=``), the table holds
+V = ``n_variants`` copies of every view, row ``k * n_cells + v`` being view v under
+variant k, and each new episode of a slot draws its variant uniformly (after its task
+and start, from the same generator). The view indices the environment hands out
+(:attr:`view_index`, :attr:`target_index`, :attr:`StepResult.final_view`) are rows of
+that table, so a learner that gathers rows by index trains on the variants unchanged,
+and a table built from another altitude of the same augmented factory (the curriculum's
+previous-altitude view and its teacher) has the same rows. The current and the target
+view of an episode share its variant: the paper's agent compares what it sees with a
+target taken from the same imagery, and a season or exposure change affects the whole
+scene at once, so the variation that transfer meets (urban -> wild, another flight) is
+between episodes, not inside one; independent variants would add a harder
+cross-appearance matching problem that no evaluation poses. Evaluation builds its own
+environment on the bare env and sees clean imagery.
 """
 
 from __future__ import annotations
@@ -31,6 +47,7 @@ from typing import Any
 
 import numpy as np
 
+from geonav.augment import AugmentConfig, augment_images
 from geonav.env import GeoNavEnv
 from geonav.errors import ConfigError, TaskError
 from geonav.tasks import ACTION_MOVES
@@ -51,7 +68,8 @@ class StepResult:
     collided: np.ndarray
     """bool: the move was refused (obstacle or region edge)."""
     final_view: np.ndarray
-    """int64 view index where the step left each slot (before any auto-reset)."""
+    """int64 view index (table row, with the episode's variant) where the step left each
+    slot (before any auto-reset)."""
     final: list[dict[str, Any]]
     """One summary per finished episode: slot, task, task_index, length, success,
     shortest_path, return, collisions."""
@@ -70,10 +88,19 @@ class LatticeVecEnv:
         n_slots: B, the number of parallel episodes.
         slot_tasks: per slot, a fixed task index for every episode of that slot (None or
             -1: drawn by the env's ``task_sampling``). Meta-training pins tasks to slots.
+        augment: imagery randomisation (an :class:`~geonav.augment.AugmentConfig`); None
+            takes the one of an :class:`~geonav.wrappers.ImageryRandomisation` around
+            ``env``, if any.
     """
 
-    def __init__(self, env: Any, n_slots: int, *, slot_tasks: Any = None) -> None:
+    def __init__(self, env: Any, n_slots: int, *, slot_tasks: Any = None,
+                 augment: AugmentConfig | None = None) -> None:
         u: GeoNavEnv = env.unwrapped
+        if augment is None:
+            augment = find_augment(env)
+        self.augment = augment
+        self.n_variants = 1 if augment is None else augment.n_variants
+        """V: copies of every view in the table (1 without randomisation)."""
         if n_slots < 1:
             raise ConfigError(f"n_slots must be >= 1, got {n_slots}")
         self.env = u
@@ -83,7 +110,10 @@ class LatticeVecEnv:
         sizes = [nx * ny for nx, ny in shapes]
         self.offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
         """View index of cell (ix, iy) of task i: offsets[i] + ix * ny_i + iy."""
-        self.n_views = int(self.offsets[-1])
+        self.n_cells = int(self.offsets[-1])
+        """Distinct (task, cell) views."""
+        self.n_views = self.n_variants * self.n_cells
+        """Rows of the view table: every (task, cell) view under every variant."""
         self.nx = np.asarray([s[0] for s in shapes], np.int64)
         self.ny = np.asarray([s[1] for s in shapes], np.int64)
         self.max_steps = np.asarray([u.max_steps_of(i) for i in range(self.n_tasks)], np.int64)
@@ -93,8 +123,9 @@ class LatticeVecEnv:
         self._blocked = [tm.blocked.astype(bool) for tm in u.task_maps]
         self._dist = [tm.dist_to_target.astype(np.int64) for tm in u.task_maps]
         self._starts = [np.asarray(u.start_cells(i), np.int64) for i in range(self.n_tasks)]
-        self.view_task = np.repeat(np.arange(self.n_tasks), sizes).astype(np.int64)
-        """Task of every view index."""
+        self.view_task = np.tile(np.repeat(np.arange(self.n_tasks), sizes),
+                                 self.n_variants).astype(np.int64)
+        """Task of every view index (table row)."""
         self.slot_tasks = np.full(self.n_slots, -1, np.int64) if slot_tasks is None else \
             np.asarray(slot_tasks, np.int64).reshape(self.n_slots)
         if (self.slot_tasks >= self.n_tasks).any():
@@ -104,59 +135,102 @@ class LatticeVecEnv:
         b = self.n_slots
         self.task = np.zeros(b, np.int64)
         self.cell = np.zeros((b, 2), np.int64)
+        self.variant = np.zeros(b, np.int64)
+        """Imagery variant of every slot's episode (0 without randomisation)."""
         self.start = np.zeros((b, 2), np.int64)
         self.steps = np.zeros(b, np.int64)
         self.ep_return = np.zeros(b, np.float64)
         self.collisions = np.zeros(b, np.int64)
         self._images: np.ndarray | None = None
+        self._clean: np.ndarray | None = None
 
     # -- tables -----------------------------------------------------------------------------
-    def view_of(self, task_index: int, cell: tuple[int, int]) -> int:
-        return int(self.offsets[task_index] + cell[0] * self.ny[task_index] + cell[1])
+    def view_of(self, task_index: int, cell: tuple[int, int], variant: int = 0) -> int:
+        """Table row of a cell of a task under an imagery variant."""
+        return int(variant * self.n_cells + self.offsets[task_index]
+                   + cell[0] * self.ny[task_index] + cell[1])
 
     def view_cells(self) -> list[tuple[int, tuple[int, int]]]:
-        """(task index, cell) of every view index, in index order."""
+        """(task index, cell) of every view of one variant (rows 0..n_cells-1), in order."""
         return [(i, (x, y)) for i in range(self.n_tasks)
                 for x in range(int(self.nx[i])) for y in range(int(self.ny[i]))]
 
-    def image_table(self) -> np.ndarray:
-        """(n_views, N, N, 3) uint8: the rendered view of every (task, cell) (built once)."""
-        if self._images is None:
+    def _clean_table(self) -> np.ndarray:
+        """(n_cells, N, N, 3) uint8: the rendered views of the clean imagery (built once)."""
+        if self._clean is None:
             n = self.env.camera.size_px
-            out = np.empty((self.n_views, n, n, 3), np.uint8)
+            out = np.empty((self.n_cells, n, n, 3), np.uint8)
             for v, (ti, cell) in enumerate(self.view_cells()):
                 out[v] = self.env.observation_at(ti, cell)
-            self._images = out
+            self._clean = out
+        return self._clean
+
+    def image_table(self) -> np.ndarray:
+        """(n_views, N, N, 3) uint8: the rendered view of every (task, cell) under every
+        imagery variant, variant-major (built once)."""
+        if self._images is None:
+            clean, c = self._clean_table(), self.n_cells
+            if self.augment is None:
+                self._images = clean
+            else:
+                out = np.empty((self.n_views, *clean.shape[1:]), np.uint8)
+                for k in range(self.n_variants):
+                    out[k * c:(k + 1) * c] = augment_images(clean, self.augment.params(k))
+                self._images = out
+                self._clean = None  # the variant copies replace it
         return self._images
 
     def feature_table(self, frozen: Any, chunk: int = 256) -> Any:
-        """(n_views, F) features of every view through a frozen encoder (a torch tensor)."""
+        """(n_views, F) features of every view through a frozen encoder (a torch tensor).
+
+        With imagery variants and no image table built yet, the variants are rendered and
+        encoded chunk by chunk, so only the clean images and the features stay in memory
+        (not V copies of the pixels)."""
         import torch
 
-        images = self.image_table()
-        parts = [frozen.encode(torch.from_numpy(images[i:i + chunk]))
-                 for i in range(0, self.n_views, chunk)]
-        return torch.cat(parts)
+        out: Any = None
+
+        def put(row: int, images: np.ndarray) -> None:
+            nonlocal out
+            f = frozen.encode(torch.from_numpy(images))
+            if out is None:  # filled in place: no list of parts and no torch.cat copy
+                out = torch.empty((self.n_views, *f.shape[1:]), dtype=f.dtype)
+            out[row:row + len(f)] = f
+
+        if self._images is not None or self.augment is None:
+            images = self.image_table()
+            for i in range(0, self.n_views, chunk):
+                put(i, images[i:i + chunk])
+            return out
+        clean, c = self._clean_table(), self.n_cells
+        for k in range(self.n_variants):
+            p = self.augment.params(k)
+            for i in range(0, c, chunk):
+                put(k * c + i, augment_images(clean[i:i + chunk], p))
+        return out
 
     @property
     def view_index(self) -> np.ndarray:
-        """(B,) view index of every slot's current cell."""
-        return self.offsets[self.task] + self.cell[:, 0] * self.ny[self.task] + self.cell[:, 1]
+        """(B,) view index (table row) of every slot's current cell and variant."""
+        return self.variant * self.n_cells + self.offsets[self.task] \
+            + self.cell[:, 0] * self.ny[self.task] + self.cell[:, 1]
 
     @property
     def target_index(self) -> np.ndarray:
-        """(B,) view index of every slot's target cell."""
-        return self.target_view[self.task]
+        """(B,) view index (table row) of every slot's target cell and variant."""
+        return self.variant * self.n_cells + self.target_view[self.task]
 
     # -- episodes ---------------------------------------------------------------------------
     def seed(self, seed: int | None) -> None:
         self.np_random = np.random.default_rng(seed)
 
-    def reset(self, *, seed: int | None = None, tasks: Any = None, starts: Any = None) -> None:
-        """Start a new episode in every slot (``tasks``/``starts`` force them, per slot)."""
+    def reset(self, *, seed: int | None = None, tasks: Any = None, starts: Any = None,
+              variants: Any = None) -> None:
+        """Start a new episode in every slot (``tasks``/``starts``/``variants`` force them,
+        per slot)."""
         if seed is not None:
             self.seed(seed)
-        self.reset_slots(np.arange(self.n_slots), tasks, starts)
+        self.reset_slots(np.arange(self.n_slots), tasks, starts, variants)
 
     def _draw_task(self, slot: int) -> int:
         if self.slot_tasks[slot] >= 0:
@@ -166,8 +240,10 @@ class LatticeVecEnv:
             return self._cycle
         return int(self.np_random.integers(self.n_tasks))
 
-    def reset_slots(self, slots: Any, tasks: Any = None, starts: Any = None) -> None:
-        """New episodes in ``slots`` (in order): task drawn (or forced), then the start."""
+    def reset_slots(self, slots: Any, tasks: Any = None, starts: Any = None,
+                    variants: Any = None) -> None:
+        """New episodes in ``slots`` (in order): task drawn (or forced), then the start,
+        then (with V > 1 variants) the imagery variant."""
         for j, s in enumerate(np.asarray(slots, np.int64).tolist()):
             ti = self._draw_task(s) if tasks is None else int(tasks[j])
             if not 0 <= ti < self.n_tasks:
@@ -184,6 +260,14 @@ class LatticeVecEnv:
                 if self._dist[ti][tuple(start)] < 0:
                     raise TaskError(f"the target is unreachable from start cell "
                                     f"{tuple(start)}")
+            if variants is not None:
+                k = int(variants[j])
+                if not 0 <= k < self.n_variants:
+                    raise TaskError(f"variant {k} out of range 0..{self.n_variants - 1}")
+            else:
+                # no draw without randomisation: the task/start stream stays as before
+                k = int(self.np_random.integers(self.n_variants)) if self.n_variants > 1 else 0
+            self.variant[s] = k
             self.task[s] = ti
             self.cell[s] = start
             self.start[s] = start
@@ -238,14 +322,32 @@ class LatticeVecEnv:
                 "collided": bool(collided), "success": cell == tm.task.target_cell,
                 "is_success": cell == tm.task.target_cell,
                 "task": tm.task.name, "task_index": int(self.task[slot]),
-                "alt_m": tm.task.alt_m, "steps": int(self.steps[slot])}
+                "alt_m": tm.task.alt_m, "steps": int(self.steps[slot]),
+                **({} if self.augment is None
+                   else {"augment_variant": int(self.variant[slot])})}
 
     def table_bytes(self, frozen_dim: int | None = None) -> int:
-        """Bytes of the observation table: images, or float32 features of width F."""
+        """Bytes of the observation table (all variants): images, or float32 features of
+        width F."""
         if frozen_dim is not None:
             return self.n_views * frozen_dim * 4
         n = self.env.camera.size_px
         return self.n_views * n * n * 3
 
 
-__all__ = ["LatticeVecEnv", "StepResult"]
+def find_augment(env: Any) -> AugmentConfig | None:
+    """The :class:`~geonav.augment.AugmentConfig` of the first
+    :class:`~geonav.wrappers.ImageryRandomisation` around ``env`` (None if there is none)."""
+    import gymnasium as gym
+
+    from geonav.wrappers import ImageryRandomisation
+
+    e = env
+    while isinstance(e, gym.Wrapper):
+        if isinstance(e, ImageryRandomisation):
+            return e.augment
+        e = e.env
+    return None
+
+
+__all__ = ["LatticeVecEnv", "StepResult", "find_augment"]

@@ -95,3 +95,78 @@ class DictImageObservation(gym.ObservationWrapper[dict[str, np.ndarray], Any, An
         for key in self.keys:
             out[key] = self._image(observation[key])
         return out
+
+
+class ImageryRandomisation(gym.Wrapper[dict[str, np.ndarray], Any, dict[str, np.ndarray], Any],
+                           gym.utils.RecordConstructorArgs):
+    """Seeded imagery randomisation of GeoNavEnv's views (see :mod:`geonav.augment`).
+
+    One variant is drawn per episode at ``reset`` and applied to both the current view
+    and the target view for the whole episode (the reason is in
+    :class:`geonav.vecenv.LatticeVecEnv`'s docstring); ``reset(options={"variant": k})``
+    forces variant k, and ``info["augment_variant"]`` says which one is in use. The
+    pixels of variant k are exactly those of row ``k * n_cells + view`` of the batched
+    engine's table (``LatticeVecEnv`` on this wrapper builds its tables from the same
+    :class:`~geonav.augment.AugmentConfig`), so the two agree.
+
+    The per-episode draw comes from the wrapper's own generator, seeded from
+    ``reset(seed=s)`` (an unseeded first reset seeds it from the OS), so the wrapped
+    env's own draws (task, start) are those of the bare env.
+
+    Args:
+        env: a GeoNavEnv or a wrapper of it with its ``Dict(image, target)`` space.
+        config: an :class:`~geonav.augment.AugmentConfig` or a mapping of its fields.
+    """
+
+    def __init__(self, env: gym.Env[Any, Any], config: Any = None) -> None:
+        from geonav.augment import AugmentConfig
+
+        cfg = AugmentConfig.from_dict({} if config is None else config)
+        gym.utils.RecordConstructorArgs.__init__(self, config=cfg.to_dict())
+        gym.Wrapper.__init__(self, env)
+        space = env.observation_space
+        if not isinstance(space, spaces.Dict) or not all(
+                k in space.spaces and _is_rgb_image(space.spaces[k]) for k in ("image", "target")):
+            raise ConfigError(f"ImageryRandomisation needs GeoNavEnv's Dict(image, target) "
+                              f"space of (N, N, 3) uint8 images, got {space}")
+        self.augment = cfg
+        self._params = [cfg.params(k) for k in range(cfg.n_variants)]
+        self._rng: np.random.Generator | None = None
+        self.variant = 0
+        self._target: np.ndarray | None = None
+        self._target_key: Any = None
+
+    def _apply(self, obs: dict[str, np.ndarray], info: dict[str, Any]) -> dict[str, np.ndarray]:
+        from geonav.augment import augment_image
+
+        p = self._params[self.variant]
+        key = (self.variant, info.get("task_index"), info.get("target_cell"))
+        if self._target is None or key != self._target_key:
+            self._target, self._target_key = augment_image(obs["target"], p), key
+        out = dict(obs)
+        out["image"] = augment_image(obs["image"], p)
+        out["target"] = self._target.copy()
+        info["augment_variant"] = self.variant
+        return out
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
+              ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        options = dict(options or {})
+        forced = options.pop("variant", None)
+        if seed is not None or self._rng is None:
+            self._rng = np.random.default_rng(
+                None if seed is None else np.random.SeedSequence([0x61756776, int(seed)]))
+        if forced is not None:
+            if not 0 <= int(forced) < self.augment.n_variants:
+                raise ConfigError(f"variant {forced} out of range "
+                                  f"0..{self.augment.n_variants - 1}")
+            self.variant = int(forced)
+        else:
+            self.variant = int(self._rng.integers(self.augment.n_variants))
+        obs, info = self.env.reset(seed=seed, options=options or None)
+        return self._apply(obs, info), info
+
+    def step(self, action: Any) -> tuple[dict[str, np.ndarray], Any, bool, bool,
+                                         dict[str, Any]]:
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        return self._apply(obs, info), reward, terminated, truncated, info

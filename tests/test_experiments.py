@@ -128,6 +128,19 @@ def test_tiny_experiment_end_to_end(tmp_path):
         assert 0.0 <= rec["final_greedy_sr"] <= 1.0 and 0.0 <= rec["final_sampled_sr"] <= 1.0
         assert rec["eval_convergence"]["n"] == 2
         assert len(rec["runs"]) == 2 and all(r["episodes"] == 40 for r in rec["runs"])
+    # what README's results table reads (geonav.experiments.table)
+    assert comp["order"] == ["scratch", "transfer"] and comp["part"] == "transfer"
+    assert comp["claim"] == "transfer vs scratch"  # no claim label: the name
+    assert comp["paper_ratio"] == pytest.approx(0.04)
+    assert comp["compute_units"] == 6 and comp["compute_s"] > 0  # pre, scratch, transfer x 2
+    readme = tmp_path / "README.md"
+    readme.write_text("# x\n<!-- results-table:start -->\n<!-- results-table:end -->\n")
+    table = subprocess.run(_geonav("experiment", "table", "runs", "--readme", "README.md",
+                                   cwd=tmp_path), cwd=tmp_path, capture_output=True,
+                           text=True, timeout=120)
+    assert table.returncode == 0, table.stderr[-3000:]
+    assert "| [transfer vs scratch](runs/tiny/report.md) (`tiny`) | 0.04 (transfer 2000 vs " \
+        "scratch 50000) |" in readme.read_text()
     # transfer started from pre's final weights, scratch did not
     tr = json.loads((root / "units/transfer/seed-0/config.json").read_text())
     assert tr["algorithm"] == "a3c"
@@ -239,3 +252,11 @@ def test_shipped_configs_parse():
         assert cfg.compare and cfg.stages
         for part in cfg.parts():
             assert cfg.stages_for([part])
+
+
+def test_paper_tasks_are_not_solved_by_chance():
+    """Issue 12: every task set of the paper protocol keeps only targets from which a
+    random walk succeeds at most 5 % of the time (the sampler enforces the cap)."""
+    cfg = load_config(Path(__file__).resolve().parent.parent / "configs" / "paper.toml")
+    for key, spec in cfg.tasks.items():
+        assert spec.max_random_walk is not None and spec.max_random_walk <= 0.05, key

@@ -47,9 +47,9 @@ def test_learns_tiny_task_far_above_random(algo):
     assert learned.success_rate >= random_sr + 0.35
 
 
-def multi_task_factory(n=3):
+def multi_task_factory(n=3, max_steps=12):
     scene = _scene(0)
-    ts = tiny_taskset(scene, cells=4, max_steps=12)
+    ts = tiny_taskset(scene, cells=4, max_steps=max_steps)
     cells = [(3, 3), (0, 0), (3, 0), (0, 3)][:n]
     tasks = [dataclasses.replace(ts.tasks[0], name=f"t{i}", target_cell=c)
              for i, c in enumerate(cells)]

@@ -170,3 +170,27 @@ def test_targets_and_starts_only_where_the_view_is_covered():
     assert NavTask.from_dict(d).min_coverage == 0.99
     d.pop("min_coverage")
     assert NavTask.from_dict(d).min_coverage == 0.99
+
+
+def test_tasks_keep_only_targets_that_chance_does_not_solve():
+    from geonav.difficulty import start_success
+
+    s = textured_scene(1000.0, 1.0, seed=4)
+    cam = Camera(32, 45.0)
+    free = sample_meta_tasks(s, 3, size_m=150, alt_m=300, step_m=7.5, max_steps=40, seed=2,
+                             camera=cam)
+    capped = sample_meta_tasks(s, 3, size_m=150, alt_m=300, step_m=7.5, max_steps=40,
+                               seed=2, camera=cam, max_random_walk=0.05)
+    rw = [start_success(bind(t, s, cam)) for t in capped.tasks]
+    assert max(rw) <= 0.05 and capped.meta["max_random_walk"] == 0.05
+    assert [t.lattice.shape for t in capped.tasks] == [(20, 20)] * 3
+    # without the cap, central targets (random walk ~0.06 on this lattice) are kept too
+    assert max(start_success(bind(t, s, cam)) for t in free.tasks) > min(rw)
+    with pytest.raises(TaskError, match="random-walk success <= 0.01"):
+        sample_meta_tasks(s, 2, size_m=150, alt_m=300, step_m=15, max_steps=70, seed=2,
+                          camera=cam, max_random_walk=0.01)
+    with pytest.raises(TaskError, match="keeps random-walk success"):
+        whole_scene_tasks(textured_scene(500.0, 0.5, seed=5), (75,), step_m=50, seed=1,
+                          max_random_walk=0.01)
+    with pytest.raises(TaskError, match="max_random_walk must lie"):
+        sample_meta_tasks(s, 1, max_random_walk=0.0)

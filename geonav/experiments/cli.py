@@ -42,6 +42,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", default="runs")
     p.add_argument("--only", action="append")
     p.set_defaults(handler=run_report)
+    p = esub.add_parser("table", help="write README's results table from "
+                        "docs/results/*/summary.json (--check: only compare)")
+    from geonav.experiments.table import add_arguments
+
+    add_arguments(p)
+    p.set_defaults(handler=run_table)
 
 
 def _backend_args(p: argparse.ArgumentParser) -> None:
@@ -215,3 +221,9 @@ def run_report(args: argparse.Namespace) -> int:
     write_report(cfg, root, cfg.stages_for(args.only), scenes, tasks, {})
     print(f"report: {root / 'report.md'}")
     return 0
+
+
+def run_table(args: argparse.Namespace) -> int:
+    from geonav.experiments.table import run as table
+
+    return table(args)

@@ -100,6 +100,10 @@ class TaskSpec:
         obs_size_px: camera image side.
         margin_alt_m: keep regions inside the imagery with this altitude's view margin.
         seed: sampler seed.
+        fov_deg: camera field of view (degrees, square image).
+        max_overlap: meta-task regions overlap each other by at most this area fraction.
+        max_random_walk: keep only targets from which a uniform random walk succeeds at
+            most this often (per task; None: any target). Issue 12 asks for 0.05.
     """
 
     name: str
@@ -115,6 +119,9 @@ class TaskSpec:
     obs_size_px: int = 84
     margin_alt_m: float | None = None
     seed: int = 0
+    fov_deg: float = 90.0
+    max_overlap: float = 0.5
+    max_random_walk: float | None = None
 
 
 @dataclass(frozen=True)
@@ -133,6 +140,10 @@ class StageSpec:
         options: algorithm options passed through (N, K, lr, encoder, ...), and the
             trainer engine: ``engine`` ("batched", the default, or "async"), ``batch``
             (slots of the batched engine, default 16) and ``device`` ("cpu" or "cuda").
+            ``augment = {variants = 8, brightness = 0.2, contrast = 0.2, hue_deg = 15,
+            blur_px = 1.0, gsd_jitter = 0.1, seed = 0}`` (or ``true`` for those
+            defaults) trains on seeded imagery variants (:mod:`geonav.augment`); the
+            unit's evaluations stay on the clean imagery.
     """
 
     name: str
@@ -155,6 +166,8 @@ class CompareSpec:
         methods: stage keys compared (episodes to convergence of each).
         paper: the paper's episodes to convergence per method, for the ratio column.
         count_parents: also report episodes including the stages each method starts from.
+        claim: the claim it tests, as README's results table names it (default: the name),
+            e.g. "5. transfer A -> B: 2K vs 50K episodes".
     """
 
     name: str
@@ -162,6 +175,7 @@ class CompareSpec:
     part: str = ""
     paper: dict[str, float] = field(default_factory=dict)
     count_parents: bool = False
+    claim: str = ""
 
 
 BACKENDS = ("local", "ray")
@@ -360,6 +374,10 @@ def _check(cfg: ExperimentConfig) -> None:
             raise ConfigError(f"[stages.{st.name}] init = {st.init!r} is not a stage")
         if st.episodes < 1:
             raise ConfigError(f"[stages.{st.name}] episodes must be >= 1")
+        if st.options.get("augment") not in (None, False, True):
+            from geonav.augment import AugmentConfig
+
+            AugmentConfig.from_dict(st.options["augment"], f"[stages.{st.name}] augment")
     for key in cfg.stages:  # no cycles
         seen, cur = set(), key
         while cur is not None:

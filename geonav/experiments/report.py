@@ -219,7 +219,10 @@ def _comparison(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
                 scenes: dict[str, str]) -> list[str]:
     crit = cfg.convergence
     lines = [f"## {comp.name}", ""]
-    record: dict[str, Any] = {"name": comp.name, "methods": {}}
+    record: dict[str, Any] = {"name": comp.name, "claim": comp.claim or comp.name,
+                              "part": comp.part or comp.name,
+                              "order": list(comp.methods), "paper": dict(comp.paper),
+                              "methods": {}}
     chance: dict[str, Any] = next((s["eval"] for m in comp.methods for s in stats_by_stage[m]
                                    if "random_walk_sr" in s["eval"]), {})
     if chance:
@@ -283,9 +286,12 @@ def _comparison(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
     lines += ["", "median [min-max] over seeds; IQM: interquartile mean with a 95 % "
               "stratified-bootstrap interval (rliable). `+`: a lower bound (censored runs, "
               "which never met the rule within their budget, count at their budget).", ""]
+    record.update(_compute(cfg, comp, root, stats_by_stage))
     if len(comp.methods) >= 2:
         a, b = comp.methods[:2]
         record["ratio"], record["eval_ratio"] = None, None
+        record["paper_ratio"] = comp.paper[b] / comp.paper[a] \
+            if a in comp.paper and b in comp.paper and comp.paper[a] else None
         for rule, label in (("train", "training-SR e*"), ("eval", "greedy-evaluation e*")):
             text, value = _ratio_text(a, b, med[rule], cens[rule], comp, label)
             lines += [text, ""]
@@ -304,6 +310,29 @@ def _comparison(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
     lines += _parent_sections(cfg, comp, root, summary, record)
     summary["comparisons"].append(record)
     return lines
+
+
+def _compute(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
+             stats_by_stage: dict[str, list[dict[str, Any]]]) -> dict[str, Any]:
+    """Compute a comparison used: the training wall seconds of every finished unit of its
+    methods and of the stages they start from, summed (``compute_s``), and their count."""
+    keys: list[str] = []
+    for m in comp.methods:
+        k: str | None = m
+        while k is not None and k not in keys:
+            keys.append(k)
+            k = cfg.stages[k].init
+    total, units = 0.0, 0
+    for k in keys:
+        stats = stats_by_stage.get(k)
+        if stats is None:
+            stats = [s for seed in cfg.seeds
+                     if (s := unit_stats(root, Unit(k, seed), cfg.convergence)) is not None]
+        for s in stats:
+            if s["wall_total_s"] is not None and not math.isnan(s["wall_total_s"]):
+                total += float(s["wall_total_s"])
+                units += 1
+    return {"compute_s": round(total, 3), "compute_units": units}
 
 
 def _parent_sections(cfg: ExperimentConfig, comp: CompareSpec, root: Path,

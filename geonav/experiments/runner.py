@@ -162,13 +162,16 @@ def make_taskset(spec: TaskSpec, scene_path: str):
     from geonav.tasks import sample_meta_tasks, whole_scene_tasks
 
     scene = Scene.open(scene_path)
-    camera = Camera(spec.obs_size_px)
+    camera = Camera(spec.obs_size_px, spec.fov_deg)
     if spec.kind == "meta":
         return sample_meta_tasks(scene, spec.count, size_m=spec.size_m or 150.0,
                                  alt_m=spec.alt_m, step_m=spec.step_m, max_steps=spec.max_steps,
-                                 seed=spec.seed, camera=camera, margin_alt_m=spec.margin_alt_m)
+                                 seed=spec.seed, camera=camera, margin_alt_m=spec.margin_alt_m,
+                                 max_overlap=spec.max_overlap,
+                                 max_random_walk=spec.max_random_walk)
     return whole_scene_tasks(scene, spec.alts_m, step_m=spec.step_m, max_steps=spec.max_steps,
-                             seed=spec.seed, size_m=spec.size_m, camera=camera)
+                             seed=spec.seed, size_m=spec.size_m, camera=camera,
+                             max_random_walk=spec.max_random_walk)
 
 
 def _read_json(path: Path) -> dict[str, Any] | None:

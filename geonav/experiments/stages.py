@@ -253,7 +253,7 @@ def execute_stage(p: dict[str, Any]) -> dict[str, Any]:
     p, env_factory, callbacks, resume = prepare_unit(p)
     model, episodes, checkpoint = TRAINERS[(p["mode"], p["algo"])](p, env_factory, callbacks,
                                                                    resume)
-    return unit_result(p, model, episodes, checkpoint, env_factory)
+    return unit_result(p, model, episodes, checkpoint)
 
 
 def execute_group(payloads: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -275,8 +275,8 @@ def execute_group(payloads: list[dict[str, Any]]) -> list[dict[str, Any]]:
         log.warning("stage %r: its seeds run one after the other, not packed: %s",
                     payloads[0]["stage"], reason)
         results = [m.train() for m in members]
-    return [unit_result(p, r.model, r.episodes, str(r.checkpoint), ef)
-            for (p, ef, _, _), r in zip(prepared, results, strict=True)]
+    return [unit_result(p, r.model, r.episodes, str(r.checkpoint))
+            for (p, *_), r in zip(prepared, results, strict=True)]
 
 
 def prepare_unit(p: dict[str, Any]) -> tuple[dict[str, Any], Any, list[Any], str | None]:
@@ -302,9 +302,12 @@ def prepare_unit(p: dict[str, Any]) -> tuple[dict[str, Any], Any, list[Any], str
     if resume is not None:
         truncate_metrics(out / "metrics.csv", resume)
         truncate_metrics(out / "eval.csv", resume)  # before ConvergenceStop reads it
-    env_factory = EnvFactory(p["scene"], p["tasks"])
-    callbacks: list[Any] = [ProgressFile(out / "progress.json")]
     p = dict(p, options=dict(p["options"]))
+    augment = stage_augment(p["options"].pop("augment", None), p.get("stage"))
+    # training sees the randomised imagery; every evaluation (unit_result) the clean one
+    env_factory = EnvFactory(p["scene"], p["tasks"]) if augment is None else \
+        EnvFactory(p["scene"], p["tasks"], augment=augment)
+    callbacks: list[Any] = [ProgressFile(out / "progress.json")]
     if p["options"].pop("tensorboard", False):  # stage option: TensorBoard under SB3's tags
         from geonav.policy.callbacks import tensorboard_callback
 
@@ -332,13 +335,15 @@ def prepare_unit(p: dict[str, Any]) -> tuple[dict[str, Any], Any, list[Any], str
     return p, env_factory, callbacks, resume
 
 
-def unit_result(p: dict[str, Any], model: Any, episodes: int, checkpoint: str,
-                env_factory: Any) -> dict[str, Any]:
-    """The final evaluation and the result.json record of a trained unit."""
+def unit_result(p: dict[str, Any], model: Any, episodes: int, checkpoint: str
+                ) -> dict[str, Any]:
+    """The final evaluation (on the clean imagery) and the result.json record of a trained
+    unit."""
     from geonav.policy.envs import EnvFactory
 
     out = Path(p["out_dir"])
-    metrics, offset, eval_factory = out / "metrics.csv", 0, env_factory
+    metrics, offset = out / "metrics.csv", 0
+    eval_factory = EnvFactory(p["scene"], p["tasks"])
     evals = out / "eval.csv"
     if p["mode"] == "curriculum":
         # Convergence is judged on the last (lowest) stage; the earlier stages of the
@@ -354,6 +359,18 @@ def unit_result(p: dict[str, Any], model: Any, episodes: int, checkpoint: str,
                 episodes=int(episodes), episodes_before_metrics=offset, checkpoint=checkpoint,
                 metrics=str(metrics), evals=str(evals), scene=p["scene"], tasks=p["tasks"],
                 eval=evaluation, trajectories=trajectories)
+
+
+def stage_augment(value: Any, stage: Any = None) -> Any:
+    """A stage's ``augment`` option (a table of :class:`geonav.augment.AugmentConfig`
+    fields) validated, or None when absent or false; ConfigError names the stage."""
+    if value is None or value is False:
+        return None
+    from geonav.augment import AugmentConfig
+
+    if value is True:
+        return AugmentConfig()
+    return AugmentConfig.from_dict(value, f"[stages.{stage}] augment")
 
 
 def truncate_metrics(metrics_csv: Path, checkpoint: str) -> None:

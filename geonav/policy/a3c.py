@@ -441,7 +441,8 @@ class A3CTrainer:
         return {"algorithm": self.algorithm, "net": to_dict(self.net_cfg),
                 self.config_key: to_dict(self.cfg), "env": env,
                 "resume": str(self.ckpt.path) if self.ckpt is not None else None,
-                "start_episode": self.start_episode, "mp_context": self.mp_context}
+                "start_episode": self.start_episode, "mp_context": self.mp_context,
+                "augment": _augment_of(self.env)}
 
     def _prepare_out_dir(self) -> list[Callback]:
         if self.out_dir is None:
@@ -690,6 +691,14 @@ class A3CTrainer:
                     p.join()
         if error is not None:
             raise WorkerFailed(error)
+
+
+def _augment_of(env: Any) -> dict[str, Any] | None:
+    """The imagery randomisation of the training env (geonav.augment), for config.json."""
+    from geonav.vecenv import find_augment
+
+    cfg = find_augment(env)
+    return None if cfg is None else cfg.to_dict()
 
 
 def train_a3c(env_factory: EnvFactory, net_cfg: NetConfig | None = None,

@@ -144,6 +144,7 @@ def run_train(args: argparse.Namespace) -> int:
         net_cfg.obs_size_px if net_cfg is not None else None)
     factory = EnvFactory(str(args.scene), str(args.tasks), args.altitude, obs,
                          args.max_steps)
+    factory = replace(factory, augment=getattr(args, "augment", None))
     if net_cfg is not None and obs is None:  # take the task set camera's size
         net_cfg = replace(net_cfg, obs_size_px=int(factory().observation_space["image"].shape[0]))
     from geonav.policy.meta_cli import extra_callbacks, run_summary

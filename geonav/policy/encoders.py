@@ -24,7 +24,8 @@ from geonav.policy.config import NetConfig
 
 log = logging.getLogger(__name__)
 
-CacheKey = tuple[int, tuple[int, int], float]
+CacheKey = tuple[int, tuple[int, int], float] | tuple[int, tuple[int, int], float, int]
+"""(task index, cell, altitude), plus the imagery variant when the env is randomised."""
 
 _IMAGENET_MEAN = (0.485, 0.456, 0.406)
 _IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -190,7 +191,10 @@ class FrozenEncoder:
 def cache_key(info: dict[str, Any], *, target: bool = False) -> CacheKey:
     """The feature-cache key of the current view (or of the target view) from an env info."""
     cell = info["target_cell"] if target else info["cell"]
-    return (int(info["task_index"]), (int(cell[0]), int(cell[1])), float(info["alt_m"]))
+    key = (int(info["task_index"]), (int(cell[0]), int(cell[1])), float(info["alt_m"]))
+    if "augment_variant" in info:  # geonav.wrappers.ImageryRandomisation: one view per variant
+        return (*key, int(info["augment_variant"]))
+    return key
 
 
 def _file_sha256(path: str) -> str:

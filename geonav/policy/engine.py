@@ -118,24 +118,33 @@ def build_trainer(algo: str, engine: str, env_factory: Any, net_cfg: Any, cfg: A
 def build_meta_trainer(algo: str, engine: str, env_factory: Any, net_cfg: Any, base_cfg: Any,
                        meta_cfg: Any, *, batch: int | None = None, device: str | None = None,
                        **kwargs: Any) -> Any:
-    """Meta-training on the batched engine where it is implemented (SAVN base, E = 1, a
-    frozen encoder), else :class:`~geonav.policy.meta.MetaTrainer` (async, with a warning
-    when the batched engine was asked for). ``batch`` is unused: B is the meta-batch."""
+    """Meta-training on the batched engine where it is implemented (SAVN, ISAR and A3C
+    bases, E = 1, a frozen encoder: :mod:`geonav.policy.batched.meta`), else
+    :class:`~geonav.policy.meta.MetaTrainer` (async, with a warning when the batched engine
+    was asked for). ``batch`` is unused: B is the meta-batch."""
     if engine not in ENGINES:
         raise ConfigError(f"engine must be one of {ENGINES}, not {engine!r}")
+    if algo not in ("a3c", "savn", "isar"):
+        raise ConfigError(f"meta-training base must be one of a3c, isar, savn, not {algo!r}")
     reason = None
     if engine == "batched":
+        if net_cfg is None and kwargs.get("resume") is not None:
+            from geonav.policy.checkpoint import load_checkpoint
+
+            net_cfg = load_checkpoint(kwargs["resume"]).net_config  # the resumed network
         reason = _fallback_reason(algo, net_cfg, base_cfg, False, False)
-        if reason is None and algo != "savn":
-            reason = f"meta-training with the {algo} base is implemented on the async engine"
+        if reason is None and (net_cfg is None or net_cfg.encoder == "cnn"):
+            reason = ("batched meta-training needs a frozen encoder (per-task copies of the "
+                      "trainable CNN are not implemented)")
         if reason is None and meta_cfg.episodes_per_task != 1:
             reason = "batched meta-training runs E = 1 episode per task visit"
         if reason is None:
-            from geonav.policy.batched.meta import BatchedMetaSAVN
+            from geonav.policy.batched.meta import BATCHED_META
 
-            trainer: Any = BatchedMetaSAVN(env_factory, net_cfg, base_cfg, meta_cfg,
-                                           device=device or "cpu", **kwargs)
-            trainer.engine_choice = EngineChoice(BatchedMetaSAVN, "batched")
+            cls = BATCHED_META[algo]
+            trainer: Any = cls(env_factory, net_cfg, base_cfg, meta_cfg,
+                               device=device or "cpu", **kwargs)
+            trainer.engine_choice = EngineChoice(cls, "batched")
             return trainer
         log.warning("engine 'batched': %s; meta-training on engine 'async'", reason)
     if device not in (None, "cpu"):

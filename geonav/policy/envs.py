@@ -16,6 +16,10 @@ class EnvFactory:
         alt_m: fly every task at this altitude (None: the tasks' own).
         obs_size_px: camera image side (None: the task set's camera).
         max_steps: episode cap override (None: the tasks' own).
+        augment: imagery randomisation (:class:`geonav.augment.AugmentConfig`): the env is
+            wrapped in :class:`geonav.wrappers.ImageryRandomisation`, whose tables the
+            batched engine picks up; ``dataclasses.replace`` keeps it, so the
+            curriculum's other altitudes get the same variants.
     """
 
     scene_dir: str
@@ -23,6 +27,7 @@ class EnvFactory:
     alt_m: float | None = None
     obs_size_px: int | None = None
     max_steps: int | None = None
+    augment: Any = None
 
     def __call__(self) -> Any:
         from geonav.camera import Camera
@@ -37,4 +42,9 @@ class EnvFactory:
                                     for t in ts.tasks])
         camera = ts.camera if self.obs_size_px is None else Camera(self.obs_size_px,
                                                                    ts.camera.fov_deg)
-        return GeoNavEnv(scene, ts, camera=camera, max_steps=self.max_steps)
+        env = GeoNavEnv(scene, ts, camera=camera, max_steps=self.max_steps)
+        if self.augment is None:
+            return env
+        from geonav.wrappers import ImageryRandomisation
+
+        return ImageryRandomisation(env, self.augment)

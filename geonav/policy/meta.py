@@ -40,6 +40,56 @@ WORKERS: dict[str, type[A3CWorker]] = {"a3c": A3CWorker, "savn": SAVNWorker,
                                        "isar": ISARWorker}
 
 
+TASK_GRADIENT = {"isar": "first order in psi: sum over windows of grad_phi_hat L_adapt at "
+                         "the current phi^i",
+                 "savn": "exact meta-gradient w.r.t. the initial parameters",
+                 "a3c": "sum of the rollout gradients at the current phi^i"}
+"""What config.json records as the task gradient g_i of each base algorithm."""
+
+
+def meta_step(optimizer: torch.optim.Optimizer, psi: list[torch.Tensor],
+              grads: list[list[torch.Tensor]], max_norm: float = 0.0, *,
+              keep: bool = False, total: list[torch.Tensor] | None = None) -> dict[str, Any]:
+    """psi <- psi - eta * sum_i g_i with the meta optimiser (``max_norm`` > 0 clips the
+    sum first); returns the update's log entry (with ``keep``: psi before and after and
+    the task gradients). ``total``: the sum, when the caller has it (consumed)."""
+    if total is None:
+        total = [torch.zeros_like(p) for p in psi]
+        for task in grads:
+            torch._foreach_add_(total, task)
+    entry: dict[str, Any] = {}
+    if keep:
+        entry["psi_before"] = [p.detach().clone() for p in psi]
+        entry["grads"] = [[x.clone() for x in g] for g in grads]
+    if max_norm > 0:
+        norm = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g)
+                                                     for g in total]))
+        entry["grad_norm"] = float(norm)
+        scale = max_norm / (float(norm) + 1e-6)
+        if scale < 1.0:
+            torch._foreach_mul_(total, scale)
+    for p, g in zip(psi, total, strict=True):
+        p.grad = g
+    optimizer.step()
+    optimizer.zero_grad(set_to_none=True)
+    if keep:
+        entry["psi_after"] = [p.detach().clone() for p in psi]
+    return entry
+
+
+def checkpoint_after_update(trainer: Any, before: int, cbs: list[Callback], rng: Any) -> None:
+    """checkpoints/latest.pt after the meta update that reaches a multiple of the meta
+    config's ``checkpoint_every`` episodes (``before``: the episodes before the update),
+    so a resume starts at a batch boundary and goes on with the cyclic task order."""
+    every = trainer.meta_cfg.checkpoint_every
+    if trainer.out_dir is not None and every and \
+            trainer.episodes_done // every > before // every:
+        path = trainer.save(trainer.out_dir / "checkpoints" / "latest.pt",
+                            trainer.episodes_done, rng())
+        for cb in cbs:
+            cb.on_checkpoint(path, trainer.episodes_done)
+
+
 class TaskRunner:
     """Runs the base algorithm on one task from psi and returns (records, g_i)."""
 
@@ -165,11 +215,7 @@ class MetaTrainer(A3CTrainer):
         d = super().resolved_config()
         d["meta"] = to_dict(self.meta_cfg)
         d["base_algorithm"] = self.algo
-        d["task_gradient"] = {"isar": "first order in psi: sum over windows of "
-                                      "grad_phi_hat L_adapt at the current phi^i",
-                              "savn": "exact meta-gradient w.r.t. the initial parameters",
-                              "a3c": "sum of the rollout gradients at the current phi^i"
-                              }[self.algo]
+        d["task_gradient"] = TASK_GRADIENT[self.algo]
         d["gradient_path"] = gradient_path(self.cfg)
         return d
 
@@ -200,38 +246,13 @@ class MetaTrainer(A3CTrainer):
 
     def _meta_step(self, jobs: list[tuple[int, int, int]],
                    grads: list[list[torch.Tensor]]) -> None:
-        psi = self.psi()
-        total = [torch.zeros_like(p) for p in psi]
-        for g in grads:
-            torch._foreach_add_(total, g)
-        entry: dict[str, Any] = {"tasks": [j[0] for j in jobs]}
-        if self.keep_task_grads:
-            entry["psi_before"] = [p.detach().clone() for p in psi]
-            entry["grads"] = [[x.clone() for x in g] for g in grads]
-        if self.meta_cfg.meta_max_grad_norm > 0:
-            norm = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g)
-                                                         for g in total]))
-            entry["grad_norm"] = float(norm)
-            scale = self.meta_cfg.meta_max_grad_norm / (float(norm) + 1e-6)
-            if scale < 1.0:
-                torch._foreach_mul_(total, scale)
-        for p, g in zip(psi, total, strict=True):
-            p.grad = g
-        self.optimizer.step()
-        self.optimizer.zero_grad(set_to_none=True)
+        entry = meta_step(self.optimizer, self.psi(), grads, self.meta_cfg.meta_max_grad_norm,
+                          keep=self.keep_task_grads)
         self.meta_updates += 1
-        if self.keep_task_grads:
-            entry["psi_after"] = [p.detach().clone() for p in psi]
-        self.update_log.append(entry)
+        self.update_log.append({"tasks": [j[0] for j in jobs], **entry})
 
     def _after_update(self, before: int, cbs: list[Callback], rng: Any) -> None:
-        every = self.meta_cfg.checkpoint_every
-        if self.out_dir is not None and every and \
-                self.episodes_done // every > before // every:
-            path = self.save(self.out_dir / "checkpoints" / "latest.pt", self.episodes_done,
-                             rng())
-            for cb in cbs:
-                cb.on_checkpoint(path, self.episodes_done)
+        checkpoint_after_update(self, before, cbs, rng)
 
     def _records(self, recs: list[dict[str, Any]], cbs: list[Callback],
                  result: TrainResult) -> bool:
@@ -327,4 +348,5 @@ def meta_train(env_factory: Any, net_cfg: NetConfig | None, algo: str, base_cfg:
     return MetaTrainer(env_factory, net_cfg, algo, base_cfg, meta_cfg, **kwargs).train()
 
 
-__all__ = ["MetaTrainer", "TaskRunner", "meta_train"]
+__all__ = ["MetaTrainer", "TaskRunner", "meta_train", "meta_step", "checkpoint_after_update",
+           "TASK_GRADIENT"]

@@ -43,6 +43,15 @@ def add_algo_args(p: argparse.ArgumentParser) -> None:
                    help="ISAR: batched recompute of each segment (default) or a graph per step")
 
 
+def _augment_arg(text: str) -> Any:
+    from geonav.augment import parse_augment
+
+    try:
+        return parse_augment(text)
+    except ConfigError as err:
+        raise argparse.ArgumentTypeError(str(err)) from err
+
+
 def add_engine_args(p: argparse.ArgumentParser) -> None:
     """``--engine``, ``--batch`` and ``--device`` (geonav.policy.engine)."""
     g = p.add_argument_group("engine")
@@ -53,6 +62,12 @@ def add_engine_args(p: argparse.ArgumentParser) -> None:
                    help="batched engine: episodes stepped together (default 16)")
     g.add_argument("--device", choices=["cpu", "cuda"], default="cpu",
                    help="batched engine: torch device (cuda is refused without a GPU)")
+    g.add_argument("--augment", type=_augment_arg, default=None, metavar="SPEC",
+                   help="train on seeded imagery variants (geonav.augment): key=value pairs "
+                   "such as 'variants=8,brightness=0.2,contrast=0.2,hue_deg=15,blur_px=1,"
+                   "gsd_jitter=0.1,seed=0,keep_clean=true' or the same as a JSON object; "
+                   "unnamed keys keep those defaults ('variants=8' alone uses them all); "
+                   "evaluations stay on the clean imagery")
     b = p.add_argument_group("budget and logging")
     b.add_argument("--total-steps", type=positive_int, default=None, metavar="N",
                    help="env-step budget in total (resumed steps included; per stage for the "
@@ -154,6 +169,7 @@ def run_train_algo(args: argparse.Namespace) -> int:
     _check_tables(toml, {"net", args.algo}, args.config)
     factory = EnvFactory(str(args.scene), str(args.tasks), args.altitude, args.obs_size,
                          args.max_steps)
+    factory = replace(factory, augment=getattr(args, "augment", None))
     cfg = base_cfg_from_args(args, args.algo, toml)
     net = net_cfg_from_args(args, toml, factory)
     if net is not None and args.obs_size is None:
@@ -246,6 +262,7 @@ def run_meta_train(args: argparse.Namespace) -> int:
     _check_tables(toml, {"net", args.algo, "meta"}, args.config)
     factory = EnvFactory(str(args.scene), str(args.tasks), args.altitude, args.obs_size,
                          args.max_steps)
+    factory = replace(factory, augment=getattr(args, "augment", None))
     meta_d = dict(toml.get("meta", {}))
     for key, val in (("episodes", args.episodes), ("workers", args.workers),
                      ("seed", args.seed), ("batch_tasks", args.batch_tasks),
@@ -306,6 +323,7 @@ def run_curriculum_cmd(args: argparse.Namespace) -> int:
             conv[key] = val
     criterion = ConvergenceCriterion(**conv)
     factory = EnvFactory(str(args.scene), str(args.tasks), None, args.obs_size, None)
+    factory = replace(factory, augment=getattr(args, "augment", None))
     base = base_cfg_from_args(argparse.Namespace(**{**vars(args), "episodes": None}),
                               args.algo, toml)
     net = None if args.init else net_cfg_from_args(args, toml, factory)

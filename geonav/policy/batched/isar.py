@@ -147,17 +147,14 @@ class BatchedISARTrainer(BatchedTrainer):
             _, v_next, _ = factored_step(params, e, self.table[vi], self.table[ti], state,
                                          adapted, None, self.fresh, vi, ti,
                                          self.prev_features(vi))
-        bootstrap = np.where(ends[-1], 0.0, v_next.to("cpu", torch.float64).numpy())
-        lg, vs, acts = torch.stack(logits), torch.stack(values), torch.stack(actions)
-        lc = cfg.loss
-        ret, adv = gae_returns(rewards, vs.detach().to("cpu", torch.float64).numpy(),
-                               bootstrap, ends, lc.gamma, lc.tau, end_values)
-        ret_t = torch.from_numpy(ret).to(dev, vs.dtype)
-        adv_t = torch.from_numpy(adv).to(dev, vs.dtype)
-        runs = [policy_value_terms(lg[:, s], vs[:, s], acts[:, s], ret_t[:, s], adv_t[:, s], lc)
-                for s in self.run_slices()]  # one run; one per run when packed
+        lg = torch.stack(logits)
+        slices = self.run_slices()  # one run; one per run when packed (run masks)
+        masks: list[torch.Tensor | None] = [None] if len(slices) == 1 else [
+            torch.zeros_like(current).index_fill_(1, torch.arange(b, device=dev)[s], 1.0)
+            for s in slices]
+        *runs, mine = segment_terms(lg, torch.stack(values), torch.stack(actions), rewards,
+                                    ends, v_next, cfg.loss, end_values, [*masks, current])
         total = torch.stack([r.total for r in runs]).sum()
-        mine = policy_value_terms(lg, vs, acts, ret_t, adv_t, lc, weights=current)
         if tlogp:  # + lambda KL(pi_T || pi_theta) in every L_int, lambda of each episode
             lam = torch.tensor(lams, dtype=lg.dtype, device=dev)                  # (N, B)
             kl = kl_terms(torch.stack(tlogp).to(lg.dtype), lg) * lam
@@ -195,6 +192,22 @@ class BatchedISARTrainer(BatchedTrainer):
         return finals, stats[0] if len(stats) == 1 else stats
 
 
+def segment_terms(logits: torch.Tensor, values: torch.Tensor, actions: torch.Tensor,
+                  rewards: np.ndarray, ends: np.ndarray, v_next: torch.Tensor, lc: Any,
+                  end_values: np.ndarray | None, weights: list[torch.Tensor | None]
+                  ) -> list[LossTerms]:
+    """L_AC of a segment of lock-step steps (T, B), once per step weighting in ``weights``
+    (None: every step): masked GAE bootstrapped with V(s_next) ``v_next`` (B,) where the
+    last step did not end the slot's episode."""
+    bootstrap = np.where(ends[-1], 0.0, v_next.to("cpu", torch.float64).numpy())
+    ret, adv = gae_returns(rewards, values.detach().to("cpu", torch.float64).numpy(),
+                           bootstrap, ends, lc.gamma, lc.tau, end_values)
+    ret_t = torch.from_numpy(ret).to(values.device, values.dtype)
+    adv_t = torch.from_numpy(adv).to(values.device, values.dtype)
+    return [policy_value_terms(logits, values, actions, ret_t, adv_t, lc, weights=w)
+            for w in weights]
+
+
 GRAM_MAX_VIEWS = 8192
 """Above this many views the (C, C) Gram matrix is not built (dense factors instead)."""
 
@@ -211,4 +224,4 @@ def values_dtype(trainer: BatchedTrainer) -> torch.dtype:
     return next(trainer.model.parameters()).dtype
 
 
-__all__ = ["BatchedISARTrainer", "clear_slots"]
+__all__ = ["BatchedISARTrainer", "clear_slots", "segment_terms", "gram_matrix"]

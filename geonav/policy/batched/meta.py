@@ -1,59 +1,113 @@
-"""Meta-training (Eq. 1, ALGORITHMS.md (d)) on the batched engine, SAVN base, E = 1.
+"""Meta-training (Eq. 1, ALGORITHMS.md (d)) on the batched engine, E = 1, frozen encoder.
 
-A meta-iteration takes the next B meta-tasks in cyclic order and runs one SAVN episode on
-each, all B at once: slot j of the round is pinned to task j of the batch and starts from
-psi (:class:`~geonav.policy.batched.savn.BatchedSAVNTrainer`'s episode-synchronous
-round). Task i's gradient g_i is its episode's exact meta-gradient w.r.t. its initial
-parameters (= psi, and Lambda); then psi <- psi - eta sum_i g_i (SGD, or Adam as
-``meta_optimizer``; ``meta_max_grad_norm`` clips the sum). With E = 1 the in-task Adam
-of the reference (:class:`~geonav.policy.meta.MetaTrainer`) never changes a task
-gradient (its step follows the only episode and is discarded), so this is the
-reference's meta update exactly, for B tasks in one batch.
+A meta-iteration takes the next B meta-tasks in cyclic order and runs one episode of the
+base algorithm on each, all B at once: slot j of the round is pinned to task j of the
+batch and starts from psi. Task i's gradient g_i is what the reference
+(:class:`~geonav.policy.meta.MetaTrainer` and its ``TaskRunner``) defines; then
+psi <- psi - eta sum_i g_i (:func:`~geonav.policy.meta.meta_step`: SGD, or Adam as
+``meta_optimizer``; ``meta_max_grad_norm`` clips the sum). Checkpoints are written after
+the meta update that reaches every ``checkpoint_every`` episodes, as the reference does,
+so a resume starts at a batch boundary and goes on with the cyclic order.
 
-ISAR and A3C bases (their in-task Adam steps make every task's parameters differ within
-its episode) and E > 1 run on the async engine.
+* **SAVN base** (:class:`BatchedMetaSAVN`, on
+  :class:`~geonav.policy.batched.savn.BatchedSAVNTrainer`'s episode-synchronous round):
+  g_i is the episode's exact meta-gradient w.r.t. its initial parameters (= psi, and
+  Lambda). With E = 1 the reference's in-task Adam never changes a task gradient (its
+  step follows the only episode and is discarded).
+* **ISAR base** (:class:`BatchedMetaISAR`): each slot carries its own copy of the
+  parameters, phi^i, stacked along a leading dim (B, ...) (per-slot weights of every
+  linear map, :func:`~geonav.policy.batched.core.linear`), and its own fresh in-task
+  Adam state (one Adam over the stacked tensors: Adam is elementwise and every live
+  slot steps at the same windows, so slot j's moments and step count are exactly a
+  per-task Adam's). On top of phi^i the interaction policy theta is the exact factored
+  per-slot inner update of :mod:`geonav.policy.batched.isar` (N-step segments, inner SGD
+  at the first K - 1 segment ends, create_graph = ``second_order``); at each window end
+  (K segments, or the episode end) grad_phi^i of the window's summed L_adapt is added,
+  unclipped, to g_i, clipped per slot to ``max_grad_norm`` and stepped by the slot's
+  Adam; theta <- phi^i, h detached. g_i = sum over windows of those gradients (first
+  order in psi: d phi^i / d psi is taken as I).
+* **A3C base** (:class:`BatchedMetaA3C`): the same with windows of one segment of
+  ``t_max`` steps and no inner step: one per-task Adam step per rollout, g_i the sum of
+  the rollout gradients (ISAR with K = 1 is the A3C worker's update exactly).
+
+Cost: every slot reads its own weights each step and its own Adam moments each window,
+so the per-slot part does not amortise with B (``bench/bench_batched.py``). Per-slot
+weights are stored transposed, (B, in, out): x W_s is a row-vector batched product, 5-10x
+faster on the CPU than W_s x. The view embeddings (their inputs are constant feature rows)
+are evaluated without graph, their outputs become leaves, and their weight gradients are
+one batched product sum_t x_t^T u_t per window; so are every layer's in first order and
+those of the last segment of a window in second order (no inner step differentiates
+through it), which then runs on untracked weights; autograd does the rest.
+
+All slots start together with h = 0, so their segments and windows fall on the same
+global clock as each reference episode's own; a slot whose episode ends waits (its later
+steps are masked out, its partial window is flushed at the window end, where its phi^i
+has not changed since, so this is the reference's flush at done) until every slot has
+finished. ``tests/test_batched_meta.py`` checks the meta update of B = 1 and B = 3 tasks
+against the reference's in float64 on forced trajectories.
 """
 
 from __future__ import annotations
 
+import time
 from dataclasses import replace
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
-from torch import nn
 
 from geonav.errors import ConfigError
+from geonav.policy.batched.core import (
+    Adapted,
+    Recorder,
+    factored_step,
+    layer_grads,
+    sample_actions,
+)
+from geonav.policy.batched.isar import gram_matrix, segment_terms, values_dtype
 from geonav.policy.batched.savn import BatchedSAVNTrainer
-from geonav.policy.config import to_dict
-from geonav.policy.meta_config import MetaConfig, SAVNConfig
+from geonav.policy.batched.trainer import BatchedTrainer
+from geonav.policy.callbacks import Callback
+from geonav.policy.config import A3CConfig, to_dict
+from geonav.policy.isar import gradient_path
+from geonav.policy.losses import LossTerms
+from geonav.policy.meta import TASK_GRADIENT, checkpoint_after_update, meta_step
+from geonav.policy.meta_config import MetaConfig
+from geonav.policy.model import State, detach_state
 from geonav.vecenv import LatticeVecEnv
 
 
-class BatchedMetaSAVN(BatchedSAVNTrainer):
-    """Meta-training with the SAVN base on the batched engine (see the module docstring).
-
-    Args as :class:`~geonav.policy.meta.MetaTrainer` with ``algo = 'savn'``; the batch is
-    the meta-batch B (``meta_cfg.batch``).
-    """
+class MetaRun:
+    """What the batched meta-trainers share (mixed in before a batched trainer): the meta
+    config, the slots' cyclic task order, the meta optimiser, the run folder's meta
+    entries and checkpoints at batch boundaries. B is the meta-batch."""
 
     config_key = "base"
+    base_algo = ""
+    base_overrides: ClassVar[dict[str, Any]] = {}
+    """Base-config fields the meta run sets (besides its budget, seed and threads)."""
 
-    def __init__(self, env_factory: Any, net_cfg: Any, base_cfg: SAVNConfig,
-                 meta_cfg: MetaConfig | None = None, **kwargs: Any) -> None:
+    def __init__(self, env_factory: Any, net_cfg: Any, base_cfg: A3CConfig,
+                 meta_cfg: MetaConfig | None = None, *, keep_task_grads: bool = False,
+                 **kwargs: Any) -> None:
         self.meta_cfg = m = meta_cfg if meta_cfg is not None else MetaConfig()
         if m.episodes_per_task != 1:
             raise ConfigError("batched meta-training runs E = 1 episode per task visit; "
                               "use engine = 'async' for more")
-        self.algorithm = "meta-savn"
+        self.algorithm = f"meta-{self.base_algo}"
         base_cfg = replace(base_cfg, episodes=m.episodes, workers=m.workers, seed=m.seed,
-                           checkpoint_every=m.checkpoint_every, torch_threads=m.torch_threads,
-                           max_grad_norm=0.0)
+                           checkpoint_every=0, torch_threads=m.torch_threads,
+                           **self.base_overrides)
         kwargs.pop("batch", None)
-        super().__init__(env_factory, net_cfg, base_cfg, batch=m.batch, **kwargs)
-        self.n_tasks = len(self.env.unwrapped.tasks)
-        self.meta_updates = int(self.ckpt.meta.get("meta_updates", 0)
-                                if self.ckpt is not None else 0)
+        super().__init__(env_factory, net_cfg, base_cfg, batch=m.batch,  # type: ignore[call-arg]
+                         **kwargs)
+        self.n_tasks = len(self.env.unwrapped.tasks)  # type: ignore[attr-defined]
+        ckpt = self.ckpt  # type: ignore[attr-defined]
+        self.meta_updates = int(ckpt.meta.get("meta_updates", 0) if ckpt is not None else 0)
+        self.keep_task_grads = keep_task_grads
+        self.update_log: list[dict[str, Any]] = []
+        """Per meta update, as :attr:`MetaTrainer.update_log` (the batch's tasks; with
+        ``keep_task_grads`` psi before and after and the task gradients)."""
 
     def build_optimizer(self, params: list[torch.Tensor]) -> torch.optim.Optimizer:
         m = self.meta_cfg
@@ -62,46 +116,64 @@ class BatchedMetaSAVN(BatchedSAVNTrainer):
         return torch.optim.SGD(params, lr=m.meta_lr)
 
     def resolved_config(self) -> dict[str, Any]:
-        d = super().resolved_config()
-        d.update({"meta": to_dict(self.meta_cfg), "base_algorithm": "savn",
-                  "task_gradient": "exact meta-gradient w.r.t. the initial parameters"})
+        d = super().resolved_config()  # type: ignore[misc]
+        d.update({"meta": to_dict(self.meta_cfg), "base_algorithm": self.base_algo,
+                  "task_gradient": TASK_GRADIENT[self.base_algo]})
         return d
 
     def checkpoint_meta(self, episodes: int) -> dict[str, Any]:
-        meta = super().checkpoint_meta(episodes)
+        meta = super().checkpoint_meta(episodes)  # type: ignore[misc]
         meta["config"]["meta"] = to_dict(self.meta_cfg)
-        meta["config"]["base_algorithm"] = "savn"
+        meta["config"]["base_algorithm"] = self.base_algo
         meta["meta_updates"] = self.meta_updates
         return meta
 
     def batch_tasks(self, visits: int) -> np.ndarray:
         """Slot j <- task (visits + j) mod M, visits = episodes so far (a resume goes on)."""
-        return ((visits + np.arange(self.batch)) % self.n_tasks).astype(np.int64)
+        return ((visits + np.arange(self.batch)) % self.n_tasks).astype(  # type: ignore
+            np.int64)
 
     def make_venv(self) -> LatticeVecEnv:
-        self._visits = self.episodes_done
-        return LatticeVecEnv(self.env, self.batch, slot_tasks=self.batch_tasks(self._visits))
+        self._visits = self.episodes_done  # type: ignore[attr-defined]
+        return LatticeVecEnv(self.env, self.batch,  # type: ignore[attr-defined]
+                             slot_tasks=self.batch_tasks(self._visits))
 
-    def next_round(self) -> None:
-        self._visits += self.batch
-        self.venv.slot_tasks = self.batch_tasks(self._visits)
-        self.venv.reset()
+    def next_round(self, visits: int | None = None) -> None:
+        """The next B tasks (``visits``: the episodes the round ran; default B)."""
+        self._visits += self.batch if visits is None else visits  # type: ignore
+        self.venv.slot_tasks = self.batch_tasks(self._visits)  # type: ignore[attr-defined]
+        self.venv.reset()  # type: ignore[attr-defined]
+
+    def after_update(self, before: int, cbs: list[Callback]) -> None:
+        checkpoint_after_update(self, before, cbs, self.rng_snapshot)  # type: ignore
+
+    def record(self, f: dict[str, Any], stats: dict[str, float]) -> dict[str, Any]:
+        rec = super().record(f, stats)  # type: ignore[misc]
+        rec["meta_update"] = f["meta_update"]
+        return rec
+
+
+class BatchedMetaSAVN(MetaRun, BatchedSAVNTrainer):
+    """Meta-training with the SAVN base on the batched engine (see the module docstring).
+
+    Args as :class:`~geonav.policy.meta.MetaTrainer` with ``algo = 'savn'``.
+    """
+
+    base_algo = "savn"
+    base_overrides: ClassVar[dict[str, Any]] = {"max_grad_norm": 0.0}
 
     def step_optimizer(self, loss: torch.Tensor) -> None:
         """psi <- psi - eta * sum_i g_i: the round's loss is the mean over the B slots,
         so its gradient times B is the sum of the task gradients."""
         self.optimizer.zero_grad(set_to_none=True)
         (loss * self.batch).backward()
-        m = self.meta_cfg
-        for p in self.params_list:
-            if p.grad is None:
-                p.grad = torch.zeros_like(p)
+        total = [torch.zeros_like(p) if p.grad is None else p.grad for p in self.params_list]
         if self.on_gradients is not None:
-            self.on_gradients([p.grad for p in self.params_list])
-        if m.meta_max_grad_norm > 0:
-            nn.utils.clip_grad_norm_(self.params_list, m.meta_max_grad_norm)
-        self.optimizer.step()
+            self.on_gradients(total)
+        entry = meta_step(self.optimizer, self.params_list, [total],
+                          self.meta_cfg.meta_max_grad_norm)
         self.meta_updates += 1
+        self.update_log.append({"tasks": self.venv.slot_tasks.tolist(), **entry})
 
     def update(self) -> tuple[list[dict[str, Any]], dict[str, float]]:
         finals, stats = super().update()
@@ -109,10 +181,343 @@ class BatchedMetaSAVN(BatchedSAVNTrainer):
             f["meta_update"] = self.meta_updates
         return finals, stats
 
+
+def psi_layout(g: torch.Tensor) -> torch.Tensor:
+    """One slot's gradient in its parameter's layout (weights are stored transposed)."""
+    return g.t().contiguous() if g.dim() == 2 else g
+
+
+def clip_per_slot(grads: list[torch.Tensor], max_norm: float) -> None:
+    """``nn.utils.clip_grad_norm_`` of each slot's gradients (dim 0 of every tensor), in
+    place: slot s is scaled by min(1, max_norm / (|g_s| + 1e-6))."""
+    if not max_norm:
+        return
+    norms = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g.flatten(1), dim=1)
+                                                  for g in grads]), dim=0)
+    coef = (max_norm / (norms + 1e-6)).clamp(max=1.0)
+    for g in grads:
+        g.mul_(coef.view(-1, *([1] * (g.dim() - 1))))
+
+
+class BatchedMetaISAR(MetaRun, BatchedTrainer):
+    """Meta-training with the ISAR base on the batched engine, per-task parameters (see
+    the module docstring). Args as :class:`~geonav.policy.meta.MetaTrainer` with
+    ``algo = 'isar'`` (``base_cfg`` an :class:`~geonav.policy.meta_config.ISARConfig`:
+    its ``lr`` and Adam settings are the in-task Adam's, ``max_grad_norm`` its clip)."""
+
+    base_algo = "isar"
+    adapted_weights = True
+    cfg: Any
+    """An ISARConfig (ISAR base) or an A3CConfig (A3C base)."""
+
+    def __init__(self, env_factory: Any, net_cfg: Any, base_cfg: Any,
+                 meta_cfg: MetaConfig | None = None, **kwargs: Any) -> None:
+        if not getattr(base_cfg, "flush_partial_window", True):
+            raise ConfigError("flush_partial_window = false is implemented on engine = "
+                              "'async' only")
+        super().__init__(env_factory, net_cfg, base_cfg, meta_cfg, **kwargs)
+
+    def schedule(self) -> tuple[int, int]:
+        """(steps per segment N, segments per window K)."""
+        return self.cfg.n_steps, self.cfg.k_segments
+
+    def resolved_config(self) -> dict[str, Any]:
+        d = super().resolved_config()
+        d["gradient_path"] = {**gradient_path(self.cfg), "path": "batched, per-task "
+                              "parameters stacked (B, ...), inner updates as per-slot "
+                              "rank-one factors on top"}
+        return d
+
+    def _setup(self) -> None:
+        super()._setup()
+        self.gram = gram_matrix(self.table)
+        self._ran = 0
+        """Episodes of the last round (its slots move to the next tasks at the next one)."""
+        self._slots: Any = None
+
     def record(self, f: dict[str, Any], stats: dict[str, float]) -> dict[str, Any]:
         rec = super().record(f, stats)
-        rec["meta_update"] = f["meta_update"]
+        if self.base_algo == "isar":  # the reference's ISAR columns (A3C has none)
+            rec.update({"inner_updates": f["inner_updates"],
+                        "adaptive_updates": f["adaptive_updates"], "kl_weight": 0.0})
         return rec
 
+    def task_parameters(self) -> tuple[dict[str, torch.Tensor], torch.optim.Optimizer,
+                                       list[torch.Tensor]]:
+        """phi^j <- psi for every slot, stacked (B, ...) leaves (weights (B, in, out), see
+        :func:`~geonav.policy.batched.core.linear`), their fresh Adam and zeroed task
+        gradients. The buffers live across rounds (re-allocating B copies of the network
+        and its Adam moments each round costs more than filling them)."""
+        cfg, b = self.cfg, self.batch
+        psi = self.params()
+        if self._slots is None:
+            phi = {n: torch.empty((b, *p.shape[::-1]) if p.dim() == 2 else (b, *p.shape),
+                                  dtype=p.dtype, device=p.device).requires_grad_()
+                   for n, p in psi.items()}
+            opt = torch.optim.Adam(list(phi.values()), lr=cfg.lr, betas=cfg.adam_betas,
+                                   eps=cfg.adam_eps, amsgrad=cfg.amsgrad,
+                                   fused=cfg.fused or None)
+            self._slots = (phi, opt, [torch.zeros_like(x) for x in phi.values()])
+        phi, opt, task_grads = self._slots
+        with torch.no_grad():
+            for n, p in psi.items():
+                phi[n].copy_((p.t() if p.dim() == 2 else p).unsqueeze(0).expand_as(phi[n]))
+            for st in opt.state.values():  # a fresh Adam: step 0, zero moments
+                for v in st.values():
+                    v.zero_()
+            for g in task_grads:
+                g.zero_()
+        return phi, opt, task_grads
 
-__all__ = ["BatchedMetaSAVN"]
+    def view_bases(self, phi: dict[str, torch.Tensor]) -> ViewBases:
+        """The window's view embeddings W x + b under every slot's phi^s (no graph)."""
+        assert self.table is not None
+        return ViewBases(phi, self.table, self.venv, self.schedule())
+
+    def segment(self, phi: dict[str, torch.Tensor], adapted: Adapted, state: State,
+                alive: np.ndarray, views: ViewBases, rec: Recorder | None
+                ) -> tuple[LossTerms, State, list[dict[str, Any]]]:
+        """Up to N lock-step steps with the graph under theta_s = phi^s + factors, the
+        linear maps recorded in ``rec``: (the live slots' summed segment loss, the state,
+        the finished episodes). ``alive`` (B,) is updated in place."""
+        lc, e, dev = self.cfg.loss, self.net_cfg.embed_dim, self.device
+        logits, values, actions, masks, rewards, ends, end_values = [], [], [], [], [], [], []
+        finals: list[dict[str, Any]] = []
+        assert self.table is not None
+        table = self.table
+
+        def step(st: State, r: Recorder | None, leaf: bool) -> tuple[Any, Any, State]:
+            vi, ti = self.slot_indices()
+            return factored_step(phi, e, table[vi], table[ti], st, adapted, r, None, vi, ti,
+                                 self.prev_features(vi), views.obs(vi, leaf), views.target)
+
+        for _ in range(self.schedule()[0]):
+            if not alive.any():
+                break
+            logit, value, state = step(state, rec, True)
+            a = sample_actions(logit, self.rng).to(dev)
+            res = self.venv.step(a.cpu().numpy(), autoreset=False)
+            if lc.bootstrap_on_truncation:  # V(s) at a truncation under theta_s (no reset)
+                end_values.append(np.zeros(len(alive)))
+                if (res.truncated & alive).any():
+                    with torch.no_grad():
+                        v_end = step(state, None, False)[1]
+                    end_values[-1] = np.where(res.truncated, v_end.cpu().numpy(), 0.0)
+            logits.append(logit)
+            values.append(value)
+            actions.append(a)
+            masks.append(torch.from_numpy(alive.copy()))
+            rewards.append(np.where(alive, res.rewards, 0.0))
+            ends.append(res.done & alive)
+            finals += [f for f in res.final if alive[f["slot"]]]
+            alive &= ~res.done
+        with torch.no_grad():  # V(s_next) under theta_s, without advancing the state
+            v_next = step(state, None, False)[1]
+        vs = torch.stack(values)
+        (terms,) = segment_terms(torch.stack(logits), vs, torch.stack(actions),
+                                 np.stack(rewards), np.stack(ends), v_next, lc,
+                                 np.stack(end_values) if end_values else None,
+                                 [torch.stack(masks).to(dev, vs.dtype)])
+        return terms, state, finals
+
+    def window_grads(self, loss: torch.Tensor, phi: dict[str, torch.Tensor],
+                     views: ViewBases, entries: list[Any], second_order: bool
+                     ) -> list[torch.Tensor]:
+        """grad_phi^s of the window's loss for every slot, (B, ...) per parameter.
+
+        A weight that enters the loss only through recorded products x W (no inner step
+        differentiates through it) has the gradient sum_t x_t^T u_t from the output
+        gradients u (:func:`~geonav.policy.batched.core.layer_grads`), one batched
+        product per layer instead of an outer product per step: the view embeddings
+        (constant inputs, evaluated once per window), every layer in first order, and in
+        second order the last segment's uses (``entries``: those recorded maps, run with
+        the weights detached); autograd gives the rest, through the inner steps.
+        """
+        names = list(phi)
+        entries = [en for en in entries if en[0] not in ("obs_embed", "target_embed")]
+        ys = list({id(y): y for _, _, y, _ in entries}.values())
+        direct = [n for n in names if n not in VIEW_PARAMS] if second_order else []
+        leaves = views.leaves()
+        gs = torch.autograd.grad(loss, [phi[n] for n in direct] + ys + leaves,
+                                 allow_unused=True)
+        out = {n: torch.zeros_like(phi[n]) if g is None else g
+               for n, g in zip(direct, gs, strict=False)}
+        recorded = layer_grads(entries, {id(y): g for y, g in
+                                         zip(ys, gs[len(direct):], strict=False)})
+        for n, g in recorded.items():
+            if not (second_order and g.dim() == 2):  # autograd has the biases' uses
+                out[n] = out[n] + g if n in out else g
+        out.update(views.grads(gs[len(direct) + len(ys):]))
+        # contiguous: the fused Adam steps a parameter with its gradient's memory order
+        return [out[n].contiguous() if n in out else torch.zeros_like(phi[n]) for n in names]
+
+    def update(self) -> tuple[list[dict[str, Any]], dict[str, float]]:
+        """One meta-iteration: an episode per slot on per-task parameters, the meta step."""
+        cfg, dev, b = self.cfg, self.device, self.batch
+        if self._ran:  # the next tasks' episodes start here, so a checkpoint taken after
+            self.next_round(self._ran)  # an update resumes with the same start draws
+            self.t_episode[:] = time.perf_counter()
+        k = self.schedule()[1]
+        second_order = bool(getattr(cfg, "second_order", False)) and k > 1
+        dtype = values_dtype(self)
+        n_jobs = min(b, cfg.episodes - self.episodes_done)
+        alive = np.arange(b) < n_jobs
+        phi, opt, task_grads = self.task_parameters()
+        leaves = list(phi.values())
+        z = torch.zeros(b, self.net_cfg.lstm_size, dtype=dtype, device=dev)
+        state: State = (z, z.clone(), torch.zeros(b, self.net_cfg.n_actions, dtype=dtype,
+                                                  device=dev))
+        inner = np.zeros(b, np.int64)
+        adapt = np.zeros(b, np.int64)
+        finals: list[dict[str, Any]] = []
+        pl = vl = ent = 0.0
+        live_segments = 0
+        # where every weight gradient comes from the recorded output gradients (first
+        # order; the last segment of a window in second order), the forward need not
+        # track the weights (the biases keep every output in the graph)
+        untracked = {n: x.detach() if x.dim() == 3 else x for n, x in phi.items()}
+        while alive.any():  # one window of up to K segments, then each slot's Adam step
+            adapted: Adapted = {}
+            window: list[torch.Tensor] = []
+            entries: list[Any] = []
+            views = self.view_bases(phi)
+            adapt += alive
+            for j in range(k):
+                live_segments += int(alive.sum())
+                last = j == k - 1
+                rec = Recorder(gram=self.gram)
+                terms, state, fin = self.segment(untracked if last or not second_order
+                                                 else phi, adapted, state, alive, views, rec)
+                for f in fin:
+                    f["inner_updates"] = int(inner[f["slot"]])
+                    f["adaptive_updates"] = int(adapt[f["slot"]])
+                finals += fin
+                window.append(terms.total)
+                pl, vl = pl + float(terms.policy.detach()), vl + float(terms.value.detach())
+                ent += float(terms.entropy.detach())
+                if last or not second_order:
+                    entries += rec.entries
+                if not alive.any():
+                    break
+                if not last:
+                    live = torch.from_numpy(alive).to(dev, dtype)
+                    adapted = rec.inner_factors(terms.total, adapted, cfg.alpha,
+                                                create_graph=second_order, weights=live)
+                    inner += alive
+            grads = self.window_grads(torch.stack(window).sum(), phi, views, entries,
+                                      second_order)
+            torch._foreach_add_(task_grads, grads)                 # g_i: unclipped
+            clip_per_slot(grads, cfg.max_grad_norm)
+            for x, g in zip(leaves, grads, strict=True):
+                x.grad = g
+            opt.step()
+            state = detach_state(state)
+        if self.on_gradients is not None:
+            self.on_gradients([psi_layout(g[:n_jobs].sum(0)) for g in task_grads])
+        total = [psi_layout(g[:n_jobs].sum(0)) for g in task_grads]
+        entry = meta_step(self.optimizer, self.params_list,
+                          [[psi_layout(g[j]) for g in task_grads] for j in range(n_jobs)]
+                          if self.keep_task_grads else [], self.meta_cfg.meta_max_grad_norm,
+                          keep=self.keep_task_grads, total=total)
+        self.meta_updates += 1
+        self.update_log.append({"tasks": self.venv.slot_tasks[:n_jobs].tolist(), **entry})
+        for f in finals:
+            f["t0"] = float(self.t_episode[f["slot"]])
+            f["meta_update"] = self.meta_updates
+        finals.sort(key=lambda f: f["slot"])  # records in batch order, as the reference
+        self._ran = n_jobs
+        # per live slot and segment (entropy: per step), as the reference's episode means
+        segs = max(live_segments, 1)
+        return finals, {"policy_loss": pl / segs, "value_loss": vl / segs,
+                        "entropy": ent / max(sum(f["length"] for f in finals), 1)}
+
+
+VIEW_PARAMS = ("obs_embed.weight", "obs_embed.bias", "target_embed.weight",
+               "target_embed.bias")
+
+
+class ViewBases:
+    """The view embeddings' W_s x + b_s of one window under per-slot phi^s, without graph,
+    and their gradients from the output gradients.
+
+    The current view's are a table of every view of the slot's (pinned) task, one batched
+    product per window, when the tasks are small; else one per step. Each step's rows and
+    the window's target rows become leaves whose gradients give
+    dW_s = sum_t u_t x_t^T (the inputs are constant feature rows).
+    """
+
+    def __init__(self, phi: dict[str, torch.Tensor], table: torch.Tensor,
+                 venv: LatticeVecEnv, schedule: tuple[int, int]) -> None:
+        self.phi, self.table = phi, table
+        b = len(venv.slot_tasks)
+        self.slots = torch.arange(b, device=table.device)
+        tasks = venv.task
+        sizes = venv.nx[tasks] * venv.ny[tasks]
+        self.first = torch.from_numpy(venv.offsets[tasks]).to(table.device)
+        w, bias = phi["obs_embed.weight"].detach(), phi["obs_embed.bias"].detach()
+        self.pre: torch.Tensor | None = None
+        if int(sizes.max()) <= 4 * schedule[0] * schedule[1]:  # cheaper than per step
+            rows = self.first[:, None] + torch.arange(int(sizes.max()), device=table.device)
+            rows = torch.minimum(rows, torch.from_numpy(venv.offsets[tasks] + sizes - 1)
+                                 .to(table.device)[:, None])
+            self.pre = torch.baddbmm(bias.unsqueeze(1), table[rows], w)
+        tgt = torch.from_numpy(venv.target_view[tasks]).to(table.device)
+        self.target_rows = tgt
+        self.target = torch.baddbmm(phi["target_embed.bias"].detach().unsqueeze(1),
+                                    table[tgt].unsqueeze(1),
+                                    phi["target_embed.weight"].detach()).squeeze(1)
+        self.target.requires_grad_()
+        self.obs_leaves: list[torch.Tensor] = []
+        self.obs_rows: list[torch.Tensor] = []
+
+    def obs(self, vi: torch.Tensor, leaf: bool) -> torch.Tensor:
+        """(B, E) W_s x + b_s of the slots' current views ``vi`` (with ``leaf``: kept for
+        the window's gradient)."""
+        if self.pre is not None:
+            y = self.pre[self.slots, vi - self.first]
+        else:
+            w, bias = self.phi["obs_embed.weight"], self.phi["obs_embed.bias"]
+            y = torch.baddbmm(bias.detach().unsqueeze(1), self.table[vi].unsqueeze(1),
+                              w.detach()).squeeze(1)
+        if not leaf:
+            return y
+        y = y.detach().requires_grad_()
+        self.obs_leaves.append(y)
+        self.obs_rows.append(vi)
+        return y
+
+    def leaves(self) -> list[torch.Tensor]:
+        return [*self.obs_leaves, self.target]
+
+    def grads(self, gs: Any) -> dict[str, torch.Tensor]:
+        """Parameter name -> (B, ...) gradient from the gradients of :meth:`leaves`."""
+        z = torch.zeros_like(self.target)
+        u = torch.stack([z if g is None else g for g in gs[:-1]], 1)        # (B, T, E)
+        x = self.table[torch.stack(self.obs_rows, 1)]                      # (B, T, F)
+        ut = z if gs[-1] is None else gs[-1]
+        return {"obs_embed.weight": torch.bmm(x.transpose(1, 2), u),          # (B, F, E)
+                "obs_embed.bias": u.sum(1),
+                "target_embed.weight": self.table[self.target_rows].unsqueeze(-1)
+                * ut.unsqueeze(1), "target_embed.bias": ut}
+
+
+class BatchedMetaA3C(BatchedMetaISAR):
+    """Meta-training with the A3C base on the batched engine: :class:`BatchedMetaISAR`
+    with windows of one ``t_max``-step rollout and no inner step (one per-task Adam step
+    per rollout; g_i the sum of the rollout gradients). Args as
+    :class:`~geonav.policy.meta.MetaTrainer` with ``algo = 'a3c'``."""
+
+    base_algo = "a3c"
+
+    def schedule(self) -> tuple[int, int]:
+        return self.cfg.t_max, 1
+
+
+
+BATCHED_META: dict[str, type] = {"savn": BatchedMetaSAVN, "isar": BatchedMetaISAR,
+                                 "a3c": BatchedMetaA3C}
+"""The batched meta-trainer of each base algorithm."""
+
+
+__all__ = ["BatchedMetaSAVN", "BatchedMetaISAR", "BatchedMetaA3C", "BATCHED_META",
+           "MetaRun", "clip_per_slot"]

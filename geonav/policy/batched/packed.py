@@ -46,7 +46,7 @@ import torch
 
 from geonav.errors import ConfigError
 from geonav.policy.a3c import TrainResult
-from geonav.policy.batched.core import ActingTables, Params
+from geonav.policy.batched.core import ActingTables, Params, RunParams
 from geonav.policy.batched.isar import BatchedISARTrainer
 from geonav.policy.batched.ppo import BatchedPPOTrainer
 from geonav.policy.batched.trainer import BatchedA3CTrainer, BatchedTrainer
@@ -141,7 +141,7 @@ class PackedTrainer(BatchedTrainer):
     # -- the four hooks -------------------------------------------------------------------
     def params(self) -> Params:
         per = [dict(m.model.named_parameters()) for m in self.members]
-        return {n: torch.stack([p[n] for p in per]) for n in per[0]}
+        return RunParams({n: torch.stack([p[n] for p in per]) for n in per[0]})
 
     def step_optimizer(self, loss: torch.Tensor) -> None:
         for m in self.members:
@@ -259,6 +259,8 @@ def packing_refusal(members: Sequence[Any]) -> str | None:
         return "packed runs need a frozen encoder (the trainable CNN encodes per run)"
     if getattr(m0, "teacher_spec", None) is not None or m0.prev_view_spec is not None:
         return "packed runs do not take the curriculum teacher or the previous-view input"
+    if any(getattr(m.env_factory, "augment", None) is not None for m in members):
+        return "imagery randomisation (augment) gives each run its own view tables"
     if m0.aux:
         return f"{m0.algorithm} trains modules beside the policy ({sorted(m0.aux)})"
     ref = _shape(m0)

@@ -277,15 +277,21 @@ class BatchedTrainer(A3CTrainer):
             self._setup()
             go_on = True
             while go_on and self.episodes_done < self.cfg.episodes:
+                before = self.episodes_done
                 finals, stats = self.update()
                 left = self.cfg.episodes - self.episodes_done
                 for f in finals[:left]:
                     if not self._on_record(self.record(f, stats), cbs, result,
                                            self.rng_snapshot):
                         go_on = False
+                self.after_update(before, cbs)
             self._final_rng = self.rng_snapshot()
         finally:
             torch.set_num_threads(threads)
+
+    def after_update(self, before: int, cbs: list[Callback]) -> None:
+        """Called after an update's records (``before``: episodes before it); meta-training
+        writes its checkpoints here, at batch boundaries."""
 
     def record(self, f: dict[str, Any], stats: dict[str, float]) -> dict[str, Any]:
         """The metrics row of a finished episode (the A3C trainer's columns)."""

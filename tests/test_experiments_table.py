@@ -1,0 +1,145 @@
+"""README's results table from docs/results/*/summary.json (geonav.experiments.table)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from geonav.errors import ConfigError
+from geonav.experiments import table
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_readme_table_agrees_with_docs_results():
+    """The committed README's table is what docs/results/*/summary.json give: after a new
+    result lands, run `geonav experiment table docs/results --readme README.md`."""
+    assert table.update_readme(REPO / "docs" / "results", REPO / "README.md",
+                               check=True) is False, (
+        "README.md's results table is out of date; run: " + table.COMMAND)
+
+
+def _conv(values, censored=0, median_censored=False):
+    return {"n": len(values), "median": sorted(values)[len(values) // 2], "min": min(values),
+            "max": max(values), "censored": censored, "median_censored": median_censored}
+
+
+def _summary(verdict, eval_verdict, paper=None, scratch=(900, 1000, 1200),
+             transfer=(100, 120, 150), **extra):
+    comp = {"name": "transfer A to B", "part": "transfer", "order": ["scratch", "transfer"],
+            "methods": {"transfer": {"convergence": _conv(transfer),
+                                     "eval_convergence": _conv(transfer)},
+                        "scratch": {"convergence": _conv(scratch),
+                                    "eval_convergence": _conv(scratch)}},
+            "verdict": verdict, "eval_verdict": eval_verdict,
+            "compute_s": 600.0, "compute_units": 9, **extra}
+    if paper is not None:
+        comp["paper"] = paper
+    return {"name": "x", "comparisons": [comp]}
+
+
+SHOWN = ("effect shown: transfer converges in fewer episodes than scratch (seed ranges "
+         "100-150 vs 900-1200 do not overlap)")
+OPPOSITE = ("effect shown: scratch converges in fewer episodes than transfer (seed ranges "
+            "1-2 vs 3-4 do not overlap)")
+NONE = "no effect shown at this budget (seed ranges 1-5 and 2-6 overlap)"
+PAPER = {"transfer": 2000, "scratch": 50000}
+
+
+@pytest.fixture()
+def results(tmp_path):
+    root = tmp_path / "docs" / "results"
+    (root / "part5").mkdir(parents=True)
+    (root / "part5" / "summary.json").write_text(json.dumps(_summary(SHOWN, SHOWN, PAPER)))
+    readme = tmp_path / "README.md"
+    readme.write_text(f"# t\n\nintro\n\n{table.START}\nold\n{table.END}\n\nafter\n")
+    return root, readme
+
+
+def test_row_has_claim_ratios_ranges_verdict_and_compute(results):
+    root, readme = results
+    assert table.update_readme(root, readme) is True
+    text = readme.read_text()
+    assert text.startswith("# t\n\nintro\n\n") and text.endswith(f"{table.END}\n\nafter\n")
+    assert "old" not in text
+    row = next(ln for ln in text.splitlines() if ln.startswith("| [transfer A to B]"))
+    assert row == ("| [transfer A to B](docs/results/part5/report.md) (`part5`) | "
+                   "0.04 (transfer 2000 vs scratch 50000) | "
+                   "0.12 (transfer 100-150 vs scratch 900-1200) | "
+                   "0.12 (transfer 100-150 vs scratch 900-1200) | reproduced | "
+                   "10.0 min over 9 units (training wall time, summed) |")
+    # idempotent, and --check agrees
+    assert table.update_readme(root, readme) is False
+    assert table.update_readme(root, readme, check=True) is False
+
+
+def test_check_fails_when_a_summary_changes(results):
+    root, readme = results
+    table.update_readme(root, readme)
+    (root / "part5" / "summary.json").write_text(json.dumps(_summary(NONE, NONE, PAPER)))
+    before = readme.read_text()
+    assert table.main([str(root), "--readme", str(readme), "--check"]) == 1
+    assert readme.read_text() == before  # --check writes nothing
+    assert table.main([str(root), "--readme", str(readme)]) == 0
+    assert "| no effect shown at this budget |" in readme.read_text()
+    assert table.main([str(root), "--readme", str(readme), "--check"]) == 0
+
+
+@pytest.mark.parametrize(("verdict", "eval_verdict", "paper", "want"), [
+    (SHOWN, SHOWN, PAPER, "reproduced"),
+    (SHOWN, NONE, PAPER, "reproduced by the training-SR rule only"),
+    (NONE, SHOWN, PAPER, "reproduced by the greedy-evaluation rule only"),
+    (OPPOSITE, SHOWN, PAPER, "not reproduced"),
+    (NONE, NONE, PAPER, "no effect shown at this budget"),
+    (SHOWN, NONE, None, "effect shown (transfer faster) (no paper figure)"),
+])
+def test_verdicts(verdict, eval_verdict, paper, want, tmp_path):
+    (tmp_path / "r" / "a").mkdir(parents=True)
+    (tmp_path / "r" / "a" / "summary.json").write_text(
+        json.dumps(_summary(verdict, eval_verdict, paper)))
+    assert f"| {want} |" in table.render_table(tmp_path / "r", tmp_path)
+
+
+def test_censored_ratios_are_bounds(tmp_path):
+    s = _summary(NONE, NONE, PAPER)
+    s["comparisons"][0]["methods"]["scratch"]["convergence"] = _conv((5000, 5000, 5000), 3,
+                                                                     True)
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "summary.json").write_text(json.dumps(s))
+    assert "<= 0.02 (transfer 100-150 vs scratch 5000-5000+)" in table.render_table(tmp_path)
+
+
+def test_claim_label_names_the_row(tmp_path):
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "summary.json").write_text(
+        json.dumps(_summary(SHOWN, SHOWN, PAPER, claim="5. transfer A -> B")))
+    assert "| [5. transfer A -> B](a/report.md) (`a`) |" in table.render_table(tmp_path,
+                                                                              tmp_path)
+
+
+def test_old_summaries_and_errors(tmp_path):
+    s = _summary(NONE, NONE)
+    comp = s["comparisons"][0]
+    for key in ("order", "compute_s", "compute_units"):
+        del comp[key]
+    comp["methods"]["scratch"]["runs"] = [{"wall_total_s": 60.0}, {"wall_total_s": 120.0}]
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "summary.json").write_text(json.dumps(s))
+    text = table.render_table(tmp_path)
+    # the method order falls back to the methods' order; paper figures are said missing
+    assert "n/a (not in this summary) | 8.33 (scratch 900-1200 vs transfer 100-150)" in text
+    assert ">= 3.0 min over 2 units (compared stages only" in text
+    with pytest.raises(ConfigError, match="no \\*/summary.json"):
+        table.render_table(tmp_path / "a")
+    (tmp_path / "b").mkdir()
+    (tmp_path / "b" / "summary.json").write_text("{")
+    with pytest.raises(ConfigError, match="not valid JSON"):
+        table.render_table(tmp_path)
+    readme = tmp_path / "R.md"
+    readme.write_text("no markers\n")
+    with pytest.raises(ConfigError, match="needs exactly one"):
+        table.replace_block(readme.read_text(), "x")
+    with pytest.raises(ConfigError, match="comes before"):
+        table.replace_block(f"{table.END}\n{table.START}\n", "x")
