@@ -5,9 +5,8 @@ from __future__ import annotations
 
 import csv
 import json
-import threading
 
-from test_experiments_faults import _config, _episodes, _kill_once_mid_run, _load
+from test_experiments_faults import _config, _episodes, _load, run_killing_once
 
 from geonav.experiments.backend import LocalBackend
 from geonav.experiments.runner import run_experiment
@@ -47,17 +46,7 @@ def test_packed_stage_equals_the_units_alone(tmp_path):
 def test_killed_packed_group_resumes_each_member_without_lost_or_duplicate_rows(tmp_path):
     cfg = _cfg(tmp_path, "faults", True, episodes=120)
     units = tmp_path / "runs" / "faults" / "units" / "pre"
-    stop = threading.Event()
-    killed: list[int] = []
-    watcher = threading.Thread(target=lambda: killed.extend(
-        _kill_once_mid_run(units / "seed-0", 35, stop)))
-    watcher.start()
-    try:
-        summary = run_experiment(cfg, tmp_path / "runs", backend=LocalBackend(1),
-                                 max_retries=1)
-    finally:
-        stop.set()
-        watcher.join()
+    summary, killed = run_killing_once(cfg, tmp_path / "runs", units / "seed-0", 35)
     assert killed, "the group finished before it could be killed"
     assert summary["failed"] == {}
     for seed in (0, 1):
