@@ -11,9 +11,11 @@ warm-up:
 * ``batched B``: the batched engine with B slots (B = 1, 16, 64, 256);
 * ``ratio``: batched per CPU-second / async per CPU-second.
 
-Rows the batched engine does not implement yet (packed runs other than A3C) print
-``n/a``; ``packed 4x16`` is 4 runs of 16 slots of
-:class:`~geonav.policy.batched.packed.PackedA3C`. In the meta-training rows (ISAR base
+Rows the batched engine does not implement yet (packed runs other than A3C, PPO and
+ISAR) print ``n/a``; ``packed 4x16`` is 4 independent runs of 16 slots each in one
+process batch (:mod:`geonav.policy.batched.packed`, each run its own parameters, Adam and
+per-run batch of 16), to read beside ``B=16`` (one such run) and ``B=64`` (one run of
+the same process batch). In the meta-training rows (ISAR base
 second and first order, A3C base, SAVN base; :mod:`geonav.policy.batched.meta`) B is the
 meta-batch, every task the bench task, and ``async`` is
 :class:`~geonav.policy.meta.MetaTrainer` in one process; the ISAR and A3C bases stop at
@@ -150,19 +152,29 @@ def run_batched(kind: str, batch: int, seconds: float) -> tuple[float, float] | 
 
 
 def run_packed(kind: str, runs: int, batch: int, seconds: float) -> tuple[float, float] | None:
-    """Steps/s of ``runs`` packed batched-A3C runs of ``batch`` slots each."""
-    from geonav.policy.batched.packed import PackedA3C
+    """Steps/s of ``runs`` packed runs of ``batch`` slots each (A3C, PPO, ISAR)."""
+    from geonav.policy.batched.packed import pack, packing_refusal
+    from geonav.policy.batched.ppo import PPOConfig
+    from geonav.policy.engine import resolve
 
     algo, net, cfg, ms = configs(kind)
-    if kind != "a3c":
+    if algo not in ("a3c", "ppo", "isar"):
         return None
-    packed = PackedA3C(env_factory(ms), net, cfg, seeds=list(range(runs)), batch=batch)
+    if algo == "ppo":
+        cfg = PPOConfig(episodes=10**7, seed=0, checkpoint_every=0, eval_every=0)
+    choice = resolve(algo, "batched", net, cfg)
+    members = [choice.cls(env_factory(ms), net, replace(cfg, seed=s), batch=batch,
+                          keep_records=False, tensorboard=False) for s in range(runs)]
+    if packing_refusal(members) is not None:
+        return None
+    driver = pack(members)
+    driver._setup()
     for _ in range(3):
-        packed.update()
-    t0, c0, n0 = time.perf_counter(), time.process_time(), packed.env_steps
+        driver.update()
+    t0, c0, n0 = time.perf_counter(), time.process_time(), driver.venv.env_steps
     while time.perf_counter() - t0 < seconds:
-        packed.update()
-    steps = packed.env_steps - n0
+        driver.update()
+    steps = driver.venv.env_steps - n0
     return steps / (time.perf_counter() - t0), steps / (time.process_time() - c0)
 
 

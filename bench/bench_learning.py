@@ -106,7 +106,7 @@ def run_ppo(scene: str, tasks: str, steps: int, seed: int, args: argparse.Namesp
 
 
 def run_geonav(algo: str, scene: str, tasks: str, steps: int, seed: int,
-               args: argparse.Namespace) -> dict[str, Any]:
+               args: argparse.Namespace, batch: int | None = None) -> dict[str, Any]:
     from geonav.policy.callbacks import Callback
     from geonav.policy.config import NetConfig
     from geonav.policy.curriculum import trainer_class
@@ -153,7 +153,7 @@ def run_geonav(algo: str, scene: str, tasks: str, steps: int, seed: int,
         from geonav.policy.engine import build_trainer
 
         trainer = build_trainer(algo, "batched", factory, NetConfig(obs_size_px=n_px), cfg,
-                                callbacks=[Budget()], keep_records=False)
+                                batch=batch, callbacks=[Budget()], keep_records=False)
     else:
         trainer = trainer_class(algo)(factory, NetConfig(obs_size_px=n_px), cfg,
                                       callbacks=[Budget()], keep_records=False)
@@ -207,6 +207,8 @@ def main() -> None:
                     "trainers), geonav-ppo (geonav's PPO, batched engine), a3c-batched, "
                     "isar-batched (batched engine, default batch)")
     ap.add_argument("--steps", type=int, default=32768, help="env steps per run")
+    ap.add_argument("--batch", default="16", help="comma-separated per-run batches (slots "
+                    "of one run) of the batched-engine methods, e.g. 4,16,64")
     ap.add_argument("--seeds", default="0,1,2")
     ap.add_argument("--eval-every", type=int, default=2048, help="env steps between evals")
     ap.add_argument("--max-starts", type=int, default=100)
@@ -234,7 +236,11 @@ def main() -> None:
           f"{chance['blind_sr']:.3f}, mean shortest path {chance['mean_shortest_path']:.1f}; "
           f"budget {args.steps} steps, seeds {seeds}, threshold {args.threshold}", flush=True)
     results: dict[str, list[dict[str, Any]]] = {}
-    for method in args.methods.split(","):
+    batched = ("geonav-ppo", "a3c-batched", "isar-batched")
+    todo = [(f"{m} B={b}" if m in batched else m, m, int(b) if m in batched else None)
+            for m in args.methods.split(",")
+            for b in (args.batch.split(",") if m in batched else ["-"])]
+    for label, method, batch in todo:
         runs = []
         for seed in seeds:
             if method == "sb3-ppo" or method == "ppo":
@@ -246,15 +252,15 @@ def main() -> None:
                 r = run_ppo(scene, tasks, args.steps, seed, args)
             else:
                 algo = "ppo" if method == "geonav-ppo" else method
-                r = run_geonav(algo, scene, tasks, args.steps, seed, args)
+                r = run_geonav(algo, scene, tasks, args.steps, seed, args, batch)
             runs.append(r)
-            print(f"  {method} seed {seed} ({r.get('engine', 'sb3')} engine): greedy SR >= "
+            print(f"  {label} seed {seed} ({r.get('engine', 'sb3')} engine): greedy SR >= "
                   f"{args.threshold} after "
                   f"{r['steps_to_thr']} steps / {r['episodes_to_thr']} episodes; final greedy "
                   f"{r['final']['greedy_sr']}, sampled {r['final']['sampled_sr']}; "
                   f"{r['steps_per_s']:.0f} steps/s", flush=True)
         if runs:
-            results[method] = runs
+            results[label] = runs
     print(f"\n| method | steps to greedy SR >= {args.threshold} | episodes to it | final greedy"
           " SR | final greedy SPL | final sampled SR | final sampled SPL | steps/s |")
     print("|---|---|---|---|---|---|---|---|")

@@ -2,44 +2,88 @@
 
 from dataclasses import replace
 
+import pytest
 import torch
 
-from geonav.policy.batched.packed import PackedA3C
+from geonav.errors import ConfigError
+from geonav.policy.batched.isar import BatchedISARTrainer
+from geonav.policy.batched.packed import pack, train_packed
+from geonav.policy.batched.ppo import BatchedPPOTrainer, PPOConfig
 from geonav.policy.batched.trainer import BatchedA3CTrainer
 from geonav.policy.checkpoint import load_checkpoint
 from geonav.policy.config import A3CConfig
+from geonav.policy.meta_config import ISARConfig
 from geonav.policy.testing import tiny_env_factory, tiny_net
 
+SEEDS = (3, 5)
+CASES = {
+    "a3c": (BatchedA3CTrainer, A3CConfig(episodes=10, t_max=5, lr=3e-3, max_grad_norm=0.05)),
+    "ppo": (BatchedPPOTrainer, PPOConfig(episodes=10, t_max=4, lr=3e-3, epochs=2,
+                                         minibatches=2, max_grad_norm=0.05)),
+    "isar": (BatchedISARTrainer, ISARConfig(episodes=10, n_steps=2, k_segments=2, lr=3e-3,
+                                            alpha=0.1, max_grad_norm=0.05)),
+}
 
-def test_two_packed_runs_equal_the_runs_alone():
+
+def float64(trainer):
+    """The trainer's network and Adam in float64 (the frozen encoder stays float32; its
+    feature table is cast to the network's dtype)."""
+    trainer.model.double()
+    trainer.params_list = list(trainer.model.parameters())
+    trainer.optimizer = trainer.build_optimizer(trainer.params_list)
+    return trainer
+
+
+@pytest.mark.parametrize("algo", sorted(CASES))
+def test_two_packed_runs_equal_the_runs_alone(algo):
+    cls, cfg = CASES[algo]
     factory = tiny_env_factory(cells=4, max_steps=6)
     net = tiny_net("random", 32, size=16)
-    cfg = A3CConfig(episodes=10, t_max=5, lr=3e-3, max_grad_norm=0.05)  # the clip acts
-    packed = PackedA3C(factory, net, cfg, seeds=[3, 5], batch=4)
-    for _ in range(4):
-        packed.update()
-    for i, seed in enumerate([3, 5]):
-        alone = BatchedA3CTrainer(factory, net, replace(cfg, seed=seed), batch=4,
-                                  tensorboard=False)
+
+    def member(seed):
+        return float64(cls(factory, net, replace(cfg, seed=seed), batch=4, tensorboard=False))
+
+    members = [member(s) for s in SEEDS]
+    driver = pack(members)
+    driver._setup()
+    for _ in range(3):
+        _, stats = driver.update()
+    moved = 0.0
+    for i, seed in enumerate(SEEDS):
+        alone = member(seed)
         alone._setup()
-        for _ in range(4):
-            alone.update()
-        mine = packed.model(i).state_dict()
-        moved = 0.0
-        for n, p in alone.model.state_dict().items():
-            torch.testing.assert_close(mine[n], p, atol=1e-6, rtol=1e-5, msg=n)
+        for _ in range(3):
+            _, alone_stats = alone.update()
+        assert stats[i] == pytest.approx(alone_stats, rel=1e-9, abs=1e-12)  # loss columns
+        mine = dict(members[i].model.named_parameters())
+        other = dict(members[1 - i].model.named_parameters())
         for n, p in alone.model.named_parameters():
-            moved = max(moved, float((p - packed.params[n][1 - i]).detach().abs().max()))
-        assert moved > 1e-4  # the two runs differ: the comparison is not trivial
+            torch.testing.assert_close(mine[n], p, atol=1e-10, rtol=1e-10, msg=n)
+            moved = max(moved, float((p - other[n]).detach().abs().max()))
+        assert alone.rng.random() == members[i].rng.random()  # the same draws were made
+    assert moved > 1e-4  # the two runs differ: the comparison is not trivial
 
 
 def test_packed_run_folders(tmp_path):
     factory = tiny_env_factory(cells=4, max_steps=6)
     net = tiny_net("random", 32, size=16)
-    recs = PackedA3C(factory, net, A3CConfig(episodes=12, t_max=4), seeds=[0, 1], batch=4,
-                     out_dir=tmp_path).train()
-    assert [len(r) for r in recs] == [12, 12]
-    for i in range(2):
-        ck = load_checkpoint(tmp_path / f"run_{i}" / "checkpoints" / "final.pt")
-        assert ck.episodes == 12
-        assert len((tmp_path / f"run_{i}" / "metrics.csv").read_text().splitlines()) == 13
+    members = [BatchedA3CTrainer(factory, net, A3CConfig(episodes=12 + 4 * s, t_max=4, seed=s,
+                                                         eval_every=0),
+                                 batch=4, out_dir=tmp_path / f"run_{s}", tensorboard=False)
+               for s in (0, 1)]
+    results = train_packed(members)
+    assert [r.episodes for r in results] == [12, 16]
+    for s in (0, 1):
+        ck = load_checkpoint(tmp_path / f"run_{s}" / "checkpoints" / "final.pt")
+        assert ck.episodes == 12 + 4 * s
+        rows = (tmp_path / f"run_{s}" / "metrics.csv").read_text().splitlines()
+        assert len(rows) == 13 + 4 * s
+        assert (tmp_path / f"run_{s}" / "config.json").exists()
+
+
+def test_packing_refuses_different_networks():
+    factory = tiny_env_factory(cells=4, max_steps=6)
+    members = [BatchedA3CTrainer(factory, tiny_net("random", 32, size=n), A3CConfig(),
+                                 batch=4, tensorboard=False) for n in (16, 32)]
+    with pytest.raises(ConfigError, match="differ in network"):
+        pack(members)

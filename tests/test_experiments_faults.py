@@ -196,19 +196,26 @@ def _kill_once_mid_run(unit: Path, after_rows: int, stop: threading.Event) -> li
     return killed
 
 
-def test_dead_worker_is_retried_from_its_checkpoint_without_lost_or_duplicate_rows(tmp_path):
-    cfg = _load(_config(tmp_path, [dict(name="pre", episodes=120)]))
-    unit = tmp_path / "runs" / "faults" / "units" / "pre" / "seed-0"
+def run_killing_once(cfg, runs: Path, unit: Path, after_rows: int):
+    """Run ``cfg`` on one local slot (max_retries 1) while the holder of ``unit``'s lock is
+    killed once mid-run; (summary, killed pids)."""
     stop = threading.Event()
     killed: list[int] = []
-    watcher = threading.Thread(target=lambda: killed.extend(_kill_once_mid_run(unit, 35, stop)))
+    watcher = threading.Thread(
+        target=lambda: killed.extend(_kill_once_mid_run(unit, after_rows, stop)))
     watcher.start()
     try:
-        summary = run_experiment(cfg, tmp_path / "runs", backend=LocalBackend(1),
-                                 max_retries=1)
+        summary = run_experiment(cfg, runs, backend=LocalBackend(1), max_retries=1)
     finally:
         stop.set()
         watcher.join()
+    return summary, killed
+
+
+def test_dead_worker_is_retried_from_its_checkpoint_without_lost_or_duplicate_rows(tmp_path):
+    cfg = _load(_config(tmp_path, [dict(name="pre", episodes=120)]))
+    unit = tmp_path / "runs" / "faults" / "units" / "pre" / "seed-0"
+    summary, killed = run_killing_once(cfg, tmp_path / "runs", unit, 35)
     assert killed, "the unit finished before it could be killed"
     assert summary["failed"] == {} and summary["retries"] == {"pre/seed-0": 1}
     written = json.loads((unit.parent.parent.parent / "summary.json").read_text())

@@ -54,11 +54,13 @@ def _metrics(path: Path) -> list[dict[str, str]]:
 
 
 def _untimed(v):
-    """``v`` without its wall-clock figures."""
+    """``v`` without its wall-clock figures (wall_*, compute_s)."""
     if isinstance(v, dict):
-        return {k: _untimed(x) for k, x in v.items() if "wall" not in k}
+        return {k: _untimed(x) for k, x in v.items() if "wall" not in k and k != "compute_s"}
     if isinstance(v, list):
         return [_untimed(x) for x in v]
+    if isinstance(v, float) and v != v:
+        return "nan"  # NaN figures (an undefined ratio) compare equal
     return v
 
 
@@ -92,6 +94,32 @@ def test_ray_runs_tiny_to_the_local_backends_results(tmp_path, ray_cluster):
     again = run_experiment(cfg, tmp_path / "ray", backend=RayBackend(), report=False,
                            on_event=events.append)
     assert again["failed"] == {} and {e.status for e in events} == {"skipped"}
+
+
+def test_ray_runs_a_packed_group_to_the_local_backends_results(tmp_path, ray_cluster):
+    """A packed stage (two seeds in one process) is one Ray task, with the local results."""
+    import tomllib
+
+    from geonav.experiments.config import parse_config
+
+    raw = tomllib.loads((REPO / "configs" / "tiny.toml").read_text())
+    raw.update(name="tiny_packed", seeds=[0, 1], compare=[])
+    raw["stages"] = {"scratch": {**raw["stages"]["scratch"], "episodes": 30, "pack": True}}
+    cfg = parse_config(raw, "tiny_packed")
+    local = run_experiment(cfg, tmp_path / "local", backend=LocalBackend(1), report=False)
+    on_ray = run_experiment(cfg, tmp_path / "ray", backend=RayBackend(), report=False)
+    assert on_ray["failed"] == local["failed"] == {}
+    for seed in (0, 1):
+        a = tmp_path / "local" / "tiny_packed" / "units" / "scratch" / f"seed-{seed}"
+        b = tmp_path / "ray" / "tiny_packed" / "units" / "scratch" / f"seed-{seed}"
+        assert _metrics(a / "metrics.csv") == _metrics(b / "metrics.csv")
+        ra, rb = (json.loads((d / "result.json").read_text()) for d in (a, b))
+        assert ra["eval"] == rb["eval"]
+        assert rb["worker"]["packed_with"] == 2 and rb["worker"]["pid"] != os.getpid()
+    pids = {json.loads((tmp_path / "ray" / "tiny_packed" / "units" / "scratch" /
+                        f"seed-{s}" / "result.json").read_text())["worker"]["pid"]
+            for s in (0, 1)}
+    assert len(pids) == 1  # one task for the group
 
 
 def test_unreachable_address_is_one_line(tmp_path):

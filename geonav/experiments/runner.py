@@ -298,6 +298,59 @@ def run_unit(payload: dict[str, Any]) -> dict[str, Any]:
     return result
 
 
+def run_group(payloads: list[dict[str, Any]]) -> dict[str, Any]:
+    """Run a packed group (several units of one stage, see :func:`packs`) in this process.
+
+    Holds every member's lock, writes each member's ``result.json`` (and on an exception
+    the traceback to each member's ``error.txt``); returns ``{"members": [results]}``.
+    """
+    from contextlib import ExitStack
+
+    from geonav.experiments.stages import execute_group
+
+    outs = [Path(p["out_dir"]) for p in payloads]
+    with ExitStack() as stack:
+        for out in outs:
+            stack.enter_context(unit_lock(out))
+            (out / ERROR).unlink(missing_ok=True)
+        t0 = time.time()
+        try:
+            results = execute_group(payloads)
+        except Exception:
+            for out in outs:
+                (out / ERROR).write_text(traceback.format_exc())
+            raise
+        for out, result in zip(outs, results, strict=True):
+            result["wall_s_this_session"] = time.time() - t0
+            result["worker"] = {"host": socket.gethostname(), "pid": os.getpid(),
+                                "packed_with": len(outs)}
+            _write_json(out / RESULT, result)
+    return {"members": results}
+
+
+PACKABLE_ALGOS = ("a3c", "ppo", "isar")
+"""Algorithms whose train-mode units of one stage a run packs (``pack = true``)."""
+
+
+def packs(stage: Any) -> bool:
+    """Whether the runner runs the seeds of ``stage`` as one packed group: the stage option
+    ``pack = true`` (off by default), mode 'train', the batched engine, a packable
+    algorithm. A stage that asks for it but cannot is run unit by unit, with a warning."""
+    if not stage.options.get("pack", False):
+        return False
+    why = None
+    if stage.mode != "train":
+        why = f"mode {stage.mode!r} (packing applies to mode 'train')"
+    elif stage.options.get("engine", "batched") != "batched":
+        why = "engine 'async' (packing needs the batched engine)"
+    elif stage.algo not in PACKABLE_ALGOS:
+        why = f"algo {stage.algo!r} (packable: {', '.join(PACKABLE_ALGOS)})"
+    if why is not None:
+        log.warning("stage with pack = true runs unit by unit: %s", why)
+        return False
+    return True
+
+
 @dataclass
 class _Run:
     """One experiment being run: its config, folder, inputs and unit states."""
@@ -409,7 +462,7 @@ def run_experiments(
                 _emit(on_event, UnitEvent(u, "skipped", r.get("episodes", 0),
                                           r.get("episodes", 0), _n_done(runs), total,
                                           run=run.cfg.name))
-    running: dict[Future, tuple[_Run, Unit]] = {}
+    running: dict[Future, tuple[_Run, Unit | tuple[Unit, ...]]] = {}
     shared = _share(runs)
     try:
         for run in runs:
@@ -420,18 +473,31 @@ def run_experiments(
                 break
             finished, _ = wait(list(running), timeout=1.0, return_when=FIRST_COMPLETED)
             for fut in finished:
-                run, u = running.pop(fut)
-                _collect(run, u, fut, retries_allowed, on_event, _n_done(runs), total)
-            for run, u in running.values():
-                p = _read_json(unit_dir(run.root, u) / PROGRESS)
-                if p:
-                    _emit(on_event, UnitEvent(u, "progress", p.get("episodes", 0),
-                                              run.cfg.stages[u.stage].episodes,
-                                              _n_done(runs), total, run=run.cfg.name))
+                run, what = running.pop(fut)
+                if isinstance(what, tuple):
+                    _collect_group(run, what, fut, retries_allowed, on_event, runs, total)
+                else:
+                    _collect(run, what, fut, retries_allowed, on_event, _n_done(runs), total)
+            for run, what in running.values():
+                for u in what if isinstance(what, tuple) else (what,):
+                    _progress(run, u, on_event, runs, total)
     except BaseException:
         backend.shutdown(cancel=True)
         raise
     backend.shutdown()
+    return _summaries(runs, report)
+
+
+def _progress(run: _Run, u: Unit, on_event: Callable[[UnitEvent], None] | None,
+              runs: list[_Run], total: int) -> None:
+    p = _read_json(unit_dir(run.root, u) / PROGRESS)
+    if p:
+        _emit(on_event, UnitEvent(u, "progress", p.get("episodes", 0),
+                                  run.cfg.stages[u.stage].episodes, _n_done(runs), total,
+                                  run=run.cfg.name))
+
+
+def _summaries(runs: list[_Run], report: bool) -> list[dict[str, Any]]:
     summaries = []
     for run in runs:
         summary: dict[str, Any] = {"name": run.cfg.name,
@@ -491,10 +557,12 @@ def _adopt(run: _Run, u: Unit, owner: tuple[_Run, Unit]) -> None:
     run.done[u] = orun.done[ou]
 
 
-def _submit_ready(runs: list[_Run], backend: Backend, running: dict[Future, tuple[_Run, Unit]],
+def _submit_ready(runs: list[_Run], backend: Backend,
+                  running: dict[Future, tuple[_Run, Unit | tuple[Unit, ...]]],
                   on_event: Callable[[UnitEvent], None] | None, total: int,
                   shared: dict[tuple[int, Unit], tuple[_Run, Unit]]) -> None:
-    busy = {(id(r), u) for r, u in running.values()}
+    busy = {(id(r), u) for r, what in running.values()
+            for u in (what if isinstance(what, tuple) else (what,))}
     for run in runs:
         for u in run.units:
             if u in run.done or u in run.failed or (id(run), u) in busy:
@@ -522,11 +590,84 @@ def _submit_ready(runs: list[_Run], backend: Backend, running: dict[Future, tupl
                     continue
                 if pu not in run.done:
                     continue
+            if packs(stage):
+                group = _ready_group(run, u, busy, shared)
+                if group is None:
+                    continue
+                if len(group) > 1:
+                    payloads = [_payload(run.cfg, run.root, m, run.scenes, run.tasks, run.done)
+                                for m in group]
+                    fut = backend.submit(run_group, payloads,
+                                         resources={"cpus": max(1, stage.workers)})
+                    running[fut] = (run, group)
+                    busy.update((id(run), m) for m in group)
+                    for m in group:
+                        _emit(on_event, UnitEvent(m, "started", 0, stage.episodes,
+                                                  _n_done(runs), total,
+                                                  f"packed with {len(group) - 1} more",
+                                                  run=run.cfg.name))
+                    continue
             payload = _payload(run.cfg, run.root, u, run.scenes, run.tasks, run.done)
             fut = backend.submit(run_unit, payload, resources={"cpus": max(1, stage.workers)})
             running[fut] = (run, u)
             _emit(on_event, UnitEvent(u, "started", 0, stage.episodes, _n_done(runs), total,
                                       run=run.cfg.name))
+
+
+def _ready_group(run: _Run, u: Unit, busy: set[tuple[int, Unit]],
+                 shared: dict[tuple[int, Unit], tuple[_Run, Unit]]) -> tuple[Unit, ...] | None:
+    """The units of ``u``'s stage still to train, once all of them can start (None while a
+    member's parent is still training); done, failed and shared units are left out."""
+    stage = run.cfg.stages[u.stage]
+    group = []
+    for m in run.units:
+        if m.stage != u.stage or m in run.done or m in run.failed or \
+                (id(run), m) in busy or (id(run), m) in shared:
+            continue
+        if stage.init is not None and Unit(stage.init, m.seed) not in run.done:
+            if Unit(stage.init, m.seed) in run.failed:
+                continue
+            return None
+        group.append(m)
+    return tuple(group)
+
+
+def _collect_group(run: _Run, group: tuple[Unit, ...], fut: Future, retries_allowed: int,
+                   on_event: Callable[[UnitEvent], None] | None, runs: list[_Run],
+                   total: int) -> None:
+    """Record a finished packed group: each member done, or the group retried (its worker
+    died; each member resumes from its own checkpoint, a member that finished is not
+    re-run) or failed (it raised)."""
+    try:
+        results = fut.result()["members"]
+    except WorkerLost as err:
+        n = max(run.retries.get(m, 0) for m in group) + 1
+        for m in group:
+            run.retries[m] = n
+            out = unit_dir(run.root, m)
+            out.mkdir(parents=True, exist_ok=True)
+            _write_json(out / RETRIES, {"worker_lost": n, "last": str(err), "packed": True})
+            if _read_json(out / RESULT) is not None:  # finished before the worker died
+                run.done[m] = _read_json(out / RESULT)  # type: ignore[assignment]
+            elif n > retries_allowed:
+                run.failed[m] = (f"its packed group's worker died {n} times (max_retries = "
+                                 f"{retries_allowed}): {err}")
+        log.warning("packed group %s: its worker died (%s); retry %d of %d from the members' "
+                    "checkpoints", [m.key for m in group], err, n, retries_allowed)
+        return
+    except Exception as err:  # noqa: BLE001 - the group's own failure, reported
+        for m in group:
+            run.failed[m] = f"{type(err).__name__}: {err} (packed group; traceback: " \
+                            f"{unit_dir(run.root, m) / ERROR})"
+            _emit(on_event, UnitEvent(m, "failed", 0, 0, _n_done(runs), total,
+                                      run.failed[m], run=run.cfg.name))
+        log.error("packed group %s failed: %s", [m.key for m in group], err)
+        return
+    for m, r in zip(group, results, strict=True):
+        run.done[m] = r
+        _emit(on_event, UnitEvent(m, "done", r.get("episodes", 0),
+                                  run.cfg.stages[m.stage].episodes, _n_done(runs), total,
+                                  run=run.cfg.name))
 
 
 def _collect(run: _Run, u: Unit, fut: Future, retries_allowed: int,

@@ -123,7 +123,9 @@ def _load_init(model: Any, path: str | None, env: Any) -> None:
 
 
 def _engine_opts(rest: dict[str, Any]) -> dict[str, Any]:
-    """Pop the trainer engine options (engine, batch, device) from a stage's options."""
+    """Pop the trainer engine options (engine, batch, device) from a stage's options, and
+    ``pack`` (the runner's: it groups the seeds, see :func:`execute_group`)."""
+    rest.pop("pack", None)
     return {"engine": rest.pop("engine", "batched"), "batch": rest.pop("batch", None),
             "device": rest.pop("device", None)}
 
@@ -166,9 +168,9 @@ def _init_net(p: dict[str, Any], net: Any, resume: str | None) -> Any:
     return net
 
 
-@trainer("train", "a3c", "savn", "isar", "ppo")
-def _train_algo(p: dict[str, Any], env_factory: Any, callbacks: list[Any],
-                resume: str | None) -> tuple[Any, int, str]:
+def _train_trainer(p: dict[str, Any], env_factory: Any, callbacks: list[Any],
+                   resume: str | None) -> Any:
+    """The trainer of a train-mode unit, ready to train (init weights loaded)."""
     from geonav.policy.engine import build_trainer
 
     cfg, net, rest = _algo_cfg(p)
@@ -181,7 +183,13 @@ def _train_algo(p: dict[str, Any], env_factory: Any, callbacks: list[Any],
                       resume=resume, callbacks=callbacks, tensorboard=False)
     if resume is None:
         _load_init(t.model, p.get("init_checkpoint"), t.env)
-    result = t.train()
+    return t
+
+
+@trainer("train", "a3c", "savn", "isar", "ppo")
+def _train_algo(p: dict[str, Any], env_factory: Any, callbacks: list[Any],
+                resume: str | None) -> tuple[Any, int, str]:
+    result = _train_trainer(p, env_factory, callbacks, resume).train()
     return result.model, result.episodes, str(result.checkpoint)
 
 
@@ -242,6 +250,38 @@ def _curriculum(p: dict[str, Any], env_factory: Any, callbacks: list[Any],
 
 def execute_stage(p: dict[str, Any]) -> dict[str, Any]:
     """Run a unit (see the module docstring); returns the result recorded in result.json."""
+    p, env_factory, callbacks, resume = prepare_unit(p)
+    model, episodes, checkpoint = TRAINERS[(p["mode"], p["algo"])](p, env_factory, callbacks,
+                                                                   resume)
+    return unit_result(p, model, episodes, checkpoint)
+
+
+def execute_group(payloads: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Run the units of a packed group (train-mode units of one stage, one per seed) as
+    packed runs in this process (:mod:`geonav.policy.batched.packed`); each member keeps
+    its own unit folder, resume and result exactly as :func:`execute_stage`. Members that
+    cannot be packed are trained one after the other, with the reason logged."""
+    from geonav.policy.batched.packed import packing_refusal, train_packed
+
+    prepared = [prepare_unit(p) for p in payloads]
+    for p, *_ in prepared:
+        if p["mode"] != "train":
+            raise ConfigError(f"stage {p['stage']!r}: pack = true applies to mode 'train' only")
+    members = [_train_trainer(p, ef, cbs, resume) for p, ef, cbs, resume in prepared]
+    reason = packing_refusal(members)
+    if reason is None:
+        results = train_packed(members)
+    else:
+        log.warning("stage %r: its seeds run one after the other, not packed: %s",
+                    payloads[0]["stage"], reason)
+        results = [m.train() for m in members]
+    return [unit_result(p, r.model, r.episodes, str(r.checkpoint))
+            for (p, *_), r in zip(prepared, results, strict=True)]
+
+
+def prepare_unit(p: dict[str, Any]) -> tuple[dict[str, Any], Any, list[Any], str | None]:
+    """Resume detection, metric truncation and callbacks of a unit: (payload, env
+    factory, callbacks, resume checkpoint or None)."""
     import torch
 
     from geonav.policy.envs import EnvFactory
@@ -264,9 +304,8 @@ def execute_stage(p: dict[str, Any]) -> dict[str, Any]:
         truncate_metrics(out / "eval.csv", resume)  # before ConvergenceStop reads it
     p = dict(p, options=dict(p["options"]))
     augment = stage_augment(p["options"].pop("augment", None), p.get("stage"))
-    clean_factory = EnvFactory(p["scene"], p["tasks"])
-    # training sees the randomised imagery; every evaluation below sees the clean one
-    env_factory = clean_factory if augment is None else \
+    # training sees the randomised imagery; every evaluation (unit_result) the clean one
+    env_factory = EnvFactory(p["scene"], p["tasks"]) if augment is None else \
         EnvFactory(p["scene"], p["tasks"], augment=augment)
     callbacks: list[Any] = [ProgressFile(out / "progress.json")]
     if p["options"].pop("tensorboard", False):  # stage option: TensorBoard under SB3's tags
@@ -293,8 +332,18 @@ def execute_stage(p: dict[str, Any]) -> dict[str, Any]:
             if resume is not None and (out / "eval.csv").exists() else []
         crit = ConvergenceCriterion(**p["convergence"])
         callbacks.append(ConvergenceStop(crit, before, evals_before))
-    model, episodes, checkpoint = TRAINERS[key](p, env_factory, callbacks, resume)
-    metrics, offset, eval_factory = out / "metrics.csv", 0, clean_factory
+    return p, env_factory, callbacks, resume
+
+
+def unit_result(p: dict[str, Any], model: Any, episodes: int, checkpoint: str
+                ) -> dict[str, Any]:
+    """The final evaluation (on the clean imagery) and the result.json record of a trained
+    unit."""
+    from geonav.policy.envs import EnvFactory
+
+    out = Path(p["out_dir"])
+    metrics, offset = out / "metrics.csv", 0
+    eval_factory = EnvFactory(p["scene"], p["tasks"])
     evals = out / "eval.csv"
     if p["mode"] == "curriculum":
         # Convergence is judged on the last (lowest) stage; the earlier stages of the

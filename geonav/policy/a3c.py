@@ -483,42 +483,52 @@ class A3CTrainer:
     # -- training ---------------------------------------------------------------------------
     def train(self) -> TrainResult:
         """Run until ``cfg.episodes`` episodes in total; write the final checkpoint."""
+        cbs, result = self.begin_training()
+        try:
+            if self.cfg.workers == 0:
+                self._train_inline(cbs, result)
+            else:
+                self._train_workers(cbs, result)
+            self.finish_training(cbs, result)
+        finally:
+            for cb in cbs:
+                cb.on_train_end(result)
+        return result
+
+    def begin_training(self) -> tuple[list[Callback], TrainResult]:
+        """The run folder, callbacks and result of a :meth:`train` call (packed runs call
+        this, the loop of their driver, then :meth:`finish_training` per member)."""
         cbs = self._prepare_out_dir() + self._tensorboard() + self.callbacks
-        t0 = time.perf_counter()
-        self._t_start, self._elapsed_base = t0, self._resumed_elapsed()
+        self._t_start = time.perf_counter()
+        self._elapsed_base = self._resumed_elapsed()
         result = TrainResult(self.model, self.start_episode, 0, 0.0, self.start_episode,
                              out_dir=self.out_dir)
         self._eval_every = self.eval_interval()
         for cb in cbs:
             cb.on_train_start({"episodes": self.cfg.episodes, "start_episode": self.start_episode,
                                "workers": self.cfg.workers, "out_dir": self.out_dir})
-        try:
-            if self.cfg.workers == 0:
-                self._train_inline(cbs, result)
-            else:
-                self._train_workers(cbs, result)
-            if self._eval_every and self._last_eval != self.episodes_done:  # the final policy
-                self.evaluate_now(cbs, result)
-            result.wall_s = time.perf_counter() - t0
-            result.eval_s = self.eval_s
-            result.episodes = self.episodes_done
-            if self.out_dir is not None:
-                ck = self.out_dir / "checkpoints"
-                rng = self._final_rng
-                result.checkpoint = self.save(ck / "final.pt", self.episodes_done, rng)
-                self.save(ck / "latest.pt", self.episodes_done, rng)
-                for cb in cbs:
-                    cb.on_checkpoint(result.checkpoint, self.episodes_done)
-                metrics = self.out_dir / "metrics.csv"
-                for cb in cbs:
-                    if isinstance(cb, CSVMetrics):
-                        cb.close()
-                if metrics.exists():
-                    plot_learning_curve(metrics, self.out_dir / "learning_curve.png")
-        finally:
+        return cbs, result
+
+    def finish_training(self, cbs: list[Callback], result: TrainResult) -> None:
+        """After the loop: the final evaluation, final.pt and latest.pt, the curve."""
+        if self._eval_every and self._last_eval != self.episodes_done:  # the final policy
+            self.evaluate_now(cbs, result)
+        result.wall_s = time.perf_counter() - self._t_start
+        result.eval_s = self.eval_s
+        result.episodes = self.episodes_done
+        if self.out_dir is not None:
+            ck = self.out_dir / "checkpoints"
+            rng = self._final_rng
+            result.checkpoint = self.save(ck / "final.pt", self.episodes_done, rng)
+            self.save(ck / "latest.pt", self.episodes_done, rng)
             for cb in cbs:
-                cb.on_train_end(result)
-        return result
+                cb.on_checkpoint(result.checkpoint, self.episodes_done)
+            metrics = self.out_dir / "metrics.csv"
+            for cb in cbs:
+                if isinstance(cb, CSVMetrics):
+                    cb.close()
+            if metrics.exists():
+                plot_learning_curve(metrics, self.out_dir / "learning_curve.png")
 
     _final_rng: dict[str, Any] | None = None
     _t_start: float = 0.0

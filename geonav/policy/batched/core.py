@@ -177,6 +177,23 @@ class Recorder:
         return out
 
 
+class RunParams(dict):  # type: ignore[type-arg]
+    """Parameters of packed runs: name -> the R runs' tensors stacked, (R, ...) each
+    (:mod:`geonav.policy.batched.packed`); a slot's rows are those of its run."""
+
+
+def affine(x: torch.Tensor, w: torch.Tensor, b: torch.Tensor | None = None) -> torch.Tensor:
+    """x W^T + b. With run-stacked parameters (packed runs: w (R, out, in), b (R, out)) the
+    rows of x (R * n, in) are R equal groups in run order, each mapped by its run's W."""
+    if w.dim() == 2:
+        return F.linear(x, w, b)
+    r = w.shape[0]
+    y = torch.bmm(x.reshape(r, -1, x.shape[-1]), w.transpose(1, 2))
+    if b is not None:
+        y = y + b.unsqueeze(1)
+    return y.reshape(-1, w.shape[1])
+
+
 def layer_grads(entries: list[tuple[str, torch.Tensor, torch.Tensor, torch.Tensor | None]],
                 out_grads: dict[int, torch.Tensor | None]) -> dict[str, torch.Tensor]:
     """Per-slot weight and bias gradients of recorded linear maps from their output
@@ -217,6 +234,8 @@ def linear(params: Params, key: str, x: torch.Tensor, adapted: Adapted | None,
     w, b = params[wname], params[bname]
     if base is not None:
         y = base.clone()  # a node per call: the recorder's entries must not share outputs
+    elif isinstance(params, RunParams):  # packed runs: (R, out, in), run r's rows
+        y = affine(x, w, b)
     elif w.dim() == 3:  # per-slot (B, in, out) weights, (B, out) biases: meta-training's phi^i
         y = torch.baddbmm(b.unsqueeze(1), x.unsqueeze(1), w).squeeze(1)
     else:
@@ -273,7 +292,7 @@ def core_step(params: Params, embed_dim: int, state: State, *,
     act_e = F.relu(linear(params, "action_embed", p, adapted, rec))
     w = params["fc.weight"]
     if pre is not None:
-        x = F.relu(pre + F.linear(act_e, w[:, view_slots(params) * embed_dim:]))
+        x = F.relu(pre + affine(act_e, w[..., view_slots(params) * embed_dim:]))
     else:
         assert obs_e is not None and tgt_e is not None
         parts = [obs_e, tgt_e] + ([] if prev_e is None else [prev_e]) + [act_e]
@@ -320,7 +339,7 @@ def sequence_forward(params: Params, embed_dim: int, table: torch.Tensor,
     p, e = params, embed_dim
     w = p["fc.weight"]
     obs_pre = view_table_part(p, e, table, prev_table)                               # (C, H)
-    tgt_pre = F.linear(target_embedding(p, table), w[:, e:2 * e], p["fc.bias"])     # (C, H)
+    tgt_pre = affine(target_embedding(p, table), w[..., e:2 * e], p["fc.bias"])     # (C, H)
     if target_idx.dim() == 1:
         target_idx = target_idx.unsqueeze(0).expand_as(view_idx)
     logits, values = [], []
@@ -378,10 +397,10 @@ def view_table_part(params: Params, embed_dim: int, feats: torch.Tensor,
     (+ W_prev relu(prev_embed) of the previous-altitude view at the same cell)."""
     w = params["fc.weight"]
     e = embed_dim
-    out = F.linear(F.relu(F.linear(feats, params["obs_embed.weight"],
-                                   params["obs_embed.bias"])), w[:, :e])
+    out = affine(F.relu(affine(feats, params["obs_embed.weight"], params["obs_embed.bias"])),
+                 w[..., :e])
     if view_slots(params) == 3:
-        out = out + F.linear(prev_embedding(params, prev_feats, feats), w[:, 2 * e:3 * e])
+        out = out + affine(prev_embedding(params, prev_feats, feats), w[..., 2 * e:3 * e])
     return out
 
 
@@ -401,8 +420,8 @@ class ActingTables:
         self.prev_features = prev_features
         w = params["fc.weight"]
         self._filled = torch.zeros(n_views, dtype=torch.bool, device=w.device)
-        self._obs = torch.zeros(n_views, w.shape[0], dtype=w.dtype, device=w.device)
-        self._tgt = torch.zeros(n_views, w.shape[0], dtype=w.dtype, device=w.device)
+        self._obs = torch.zeros(n_views, w.shape[-2], dtype=w.dtype, device=w.device)
+        self._tgt = torch.zeros(n_views, w.shape[-2], dtype=w.dtype, device=w.device)
 
     @torch.no_grad()
     def _fill(self, rows: torch.Tensor) -> None:
@@ -412,8 +431,8 @@ class ActingTables:
             f = self.features(need)
             self._obs[need] = view_table_part(
                 p, e, f, None if self.prev_features is None else self.prev_features(need))
-            self._tgt[need] = F.linear(target_embedding(p, f), p["fc.weight"][:, e:2 * e],
-                                       p["fc.bias"])
+            self._tgt[need] = affine(target_embedding(p, f), p["fc.weight"][..., e:2 * e],
+                                     p["fc.bias"])
             self._filled[need] = True
 
     def pre(self, view_idx: torch.Tensor, target_idx: torch.Tensor) -> torch.Tensor:

@@ -95,9 +95,11 @@ class BatchedISARTrainer(BatchedTrainer):
         return rec
 
     def segment(self, params: Any, adapted: Adapted, state: Any
-                ) -> tuple[LossTerms, LossTerms, Recorder, Adapted, Any, list[dict[str, Any]]]:
-        """N lock-step steps with the graph: (all-steps loss, current-episode loss,
-        recorder, adapted weights (finished slots reset to phi), state, finished episodes)."""
+                ) -> tuple[torch.Tensor, list[LossTerms], LossTerms, Recorder, Adapted, Any,
+                           list[dict[str, Any]]]:
+        """N lock-step steps with the graph: (all-steps loss, its terms per run,
+        current-episode loss, recorder, adapted weights (finished slots reset to phi),
+        state, finished episodes)."""
         cfg, e, dev = self.cfg, self.net_cfg.embed_dim, self.device
         n, b = cfg.n_steps, self.batch
         rec = Recorder(gram=self.gram)
@@ -146,16 +148,21 @@ class BatchedISARTrainer(BatchedTrainer):
                                          adapted, None, self.fresh, vi, ti,
                                          self.prev_features(vi))
         lg = torch.stack(logits)
-        full, mine = segment_terms(lg, torch.stack(values), torch.stack(actions), rewards,
-                                   ends, v_next, cfg.loss, end_values, [None, current])
+        slices = self.run_slices()  # one run; one per run when packed (run masks)
+        masks: list[torch.Tensor | None] = [None] if len(slices) == 1 else [
+            torch.zeros_like(current).index_fill_(1, torch.arange(b, device=dev)[s], 1.0)
+            for s in slices]
+        *runs, mine = segment_terms(lg, torch.stack(values), torch.stack(actions), rewards,
+                                    ends, v_next, cfg.loss, end_values, [*masks, current])
+        total = torch.stack([r.total for r in runs]).sum()
         if tlogp:  # + lambda KL(pi_T || pi_theta) in every L_int, lambda of each episode
             lam = torch.tensor(lams, dtype=lg.dtype, device=dev)                  # (N, B)
             kl = kl_terms(torch.stack(tlogp).to(lg.dtype), lg) * lam
-            full = replace(full, total=full.total + kl.sum())
+            total = total + kl.sum()
             mine = replace(mine, total=mine.total + (kl * current).sum())
-        return full, mine, rec, adapted, state, finals
+        return total, runs, mine, rec, adapted, state, finals
 
-    def update(self) -> tuple[list[dict[str, Any]], dict[str, float]]:
+    def update(self) -> tuple[list[dict[str, Any]], Any]:
         """One window of K segments and its adaptive update."""
         cfg = self.cfg
         params = self.params()
@@ -163,26 +170,26 @@ class BatchedISARTrainer(BatchedTrainer):
         state = self.state
         window: list[torch.Tensor] = []
         finals: list[dict[str, Any]] = []
-        pl = vl = ent = 0.0
+        sums = np.zeros((len(self.run_slices()), 3))  # policy, value, entropy per run
         for k in range(cfg.k_segments):
-            full, mine, rec, adapted, state, fin = self.segment(params, adapted, state)
+            total, runs, mine, rec, adapted, state, fin = self.segment(params, adapted, state)
             finals += fin
-            window.append(full.total)
-            pl += float(full.policy.detach())
-            vl += float(full.value.detach())
-            ent += float(full.entropy.detach())
+            window.append(total)
+            sums += [[float(r.policy.detach()), float(r.value.detach()),
+                      float(r.entropy.detach())] for r in runs]
             if k < cfg.k_segments - 1:
                 live = (~self.fresh).to(values_dtype(self))
                 adapted = rec.inner_factors(mine.total, adapted, cfg.alpha,
                                             create_graph=cfg.second_order, weights=live)
                 self.inner += (~self.fresh).cpu().numpy()
-        self.step_optimizer(torch.stack(window).sum() / self.batch)
+        self.step_optimizer(torch.stack(window).sum() / self.run_batch)
         self.adapt += 1
         self.state = detach_state(state)
-        b = float(self.batch)
-        terms = LossTerms(torch.tensor(0.0), torch.tensor(pl / b), torch.tensor(vl / b),
-                          torch.tensor(ent / b))
-        return finals, loss_stats(terms, cfg.n_steps * cfg.k_segments)
+        b = float(self.run_batch)
+        stats = [loss_stats(LossTerms(torch.tensor(0.0), torch.tensor(pl / b),
+                                      torch.tensor(vl / b), torch.tensor(ent / b)),
+                            cfg.n_steps * cfg.k_segments) for pl, vl, ent in sums]
+        return finals, stats[0] if len(stats) == 1 else stats
 
 
 def segment_terms(logits: torch.Tensor, values: torch.Tensor, actions: torch.Tensor,

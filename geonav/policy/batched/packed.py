@@ -1,235 +1,302 @@
-"""Packed runs: several independent batched-A3C runs in one process batch.
+"""Packed runs: several independent batched runs (A3C, PPO, ISAR) in one process batch.
 
-Each run has its own parameters, Adam state, seeds, environment slots (``batch`` per
-run, default 16) and gradient clipping, exactly as if it ran alone
-(:class:`~geonav.policy.batched.trainer.BatchedA3CTrainer`); the runs' parameters are
-stacked along a leading run dimension and every network call is one
-``torch.func.vmap`` over the runs of the same batched forward
-(:mod:`geonav.policy.batched.core`), so R runs of B slots cost about one run of R x B
-slots. One Adam over the stacked tensors is R independent Adams (Adam is elementwise
-and the runs step together); the norm clip is taken per run.
+A packed group is R *member* trainers, each an ordinary single-run trainer of the same
+algorithm (:class:`~geonav.policy.batched.trainer.BatchedA3CTrainer`,
+:class:`~geonav.policy.batched.ppo.BatchedPPOTrainer`,
+:class:`~geonav.policy.batched.isar.BatchedISARTrainer`) with its own seed, parameters,
+Adam, random streams, ``batch`` slots (the per-run batch, default 16), run folder,
+callbacks, checkpoints and resume, and one *driver*: an instance of the same algorithm's
+class whose slots are the members' slots side by side (R x B) and whose update is that
+class's own ``update`` method, unchanged. The driver differs from a single run in four
+hooks only:
+
+* ``params()``: the members' parameters stacked along a leading run dimension
+  (``torch.stack``, so gradients flow back to each member's own leaves); every linear
+  map of :mod:`geonav.policy.batched.core` applies run r's weights to run r's rows
+  (:func:`~geonav.policy.batched.core.affine`, one batched matrix product per layer);
+* ``apply_gradients()``: each member clips its own gradient norm and steps its own Adam
+  (exactly the single run's step);
+* the random streams: actions and PPO's minibatch order are drawn from each member's own
+  generator, the environment slots are the members' own vector envs;
+* the view tables: each run's image part of every view (``view_rows``, ``acting_tables``).
+
+Losses are sums of per-slot terms divided by the per-run batch (PPO: per-run means), so
+each run's gradient is the one it would have alone: two runs packed give the same
+parameters as the same runs made alone (``tests/test_batched_packed.py``, float64).
 
 Why a per-run batch rather than one run of R x B slots: a run's updates per episode
 stay those of a B-worker A3C (B = 16 is the order of the paper's and SAVN's worker
-counts), so episodes-to-convergence stay comparable with the paper's; a run of 256
-slots takes one update per 256 x t_max steps, 16 times fewer updates per episode, and
-needs many more episodes to converge even though each second holds more of them.
+counts), so episodes-to-convergence stay comparable with the paper's, while the process
+batch is R x B (docs/guide.md, the batched engine).
 
-Each run writes its own folder ``run_<i>/`` (metrics.csv with the trainer's columns,
-config.json, checkpoints/final.pt in the checkpoint format of every trainer), so
-``geonav eval`` and ``fly`` read it. Resume is not implemented for packed runs.
+Not packed: SAVN (its rounds last as long as the longest episode of the batch, so a
+packed round would draw more actions than the run alone), meta-training, the curriculum
+teacher and the previous-altitude view input, and the trainable CNN.
 """
 
 from __future__ import annotations
 
-import json
+import logging
 import time
 from collections.abc import Sequence
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
 from geonav.errors import ConfigError
-from geonav.policy.batched.core import Params, core_step, sample_actions
-from geonav.policy.batched.core import sequence_forward as _sequence_forward
-from geonav.policy.batched.trainer import DEFAULT_BATCH, resolve_device
-from geonav.policy.callbacks import CSVMetrics
-from geonav.policy.checkpoint import make_meta, save_checkpoint
-from geonav.policy.config import A3CConfig, NetConfig, to_dict
-from geonav.policy.encoders import build_frozen_encoder
-from geonav.policy.evaluation import spl
-from geonav.policy.losses import gae_returns, policy_value_terms
-from geonav.policy.model import ActorCritic
-from geonav.vecenv import LatticeVecEnv
+from geonav.policy.a3c import TrainResult
+from geonav.policy.batched.core import ActingTables, Params, RunParams
+from geonav.policy.batched.isar import BatchedISARTrainer
+from geonav.policy.batched.ppo import BatchedPPOTrainer
+from geonav.policy.batched.trainer import BatchedA3CTrainer, BatchedTrainer
+from geonav.policy.config import to_dict
+from geonav.vecenv import StepResult
+
+log = logging.getLogger(__name__)
 
 
-def _tables(params: Params, embed_dim: int, feats: torch.Tensor
-            ) -> tuple[torch.Tensor, torch.Tensor]:
-    """(C, H) image parts of every view as current view and as target (no factors)."""
-    w = params["fc.weight"]
-    obs_e = torch.relu(torch.nn.functional.linear(feats, params["obs_embed.weight"],
-                                                  params["obs_embed.bias"]))
-    tgt_e = torch.relu(torch.nn.functional.linear(feats, params["target_embed.weight"],
-                                                  params["target_embed.bias"]))
-    return (torch.nn.functional.linear(obs_e, w[:, :embed_dim]),
-            torch.nn.functional.linear(tgt_e, w[:, embed_dim:2 * embed_dim], params["fc.bias"]))
+class StackedVecEnv:
+    """R vector envs of B slots each seen as one of R x B slots (slots in run order)."""
 
-
-class PackedA3C:
-    """R batched-A3C runs in one process batch (see the module docstring).
-
-    Args:
-        env_factory: the environment of every run (its tasks and rewards).
-        net_cfg: the architecture of every run (a frozen encoder).
-        cfg: A3C settings of every run; ``cfg.episodes`` is each run's budget.
-        seeds: one seed per run (model init, environment and action draws, as a lone
-            :class:`BatchedA3CTrainer` with ``cfg.seed = seed``).
-        batch: slots per run.
-        device: 'cpu' or 'cuda'.
-        out_dir: folder of the run folders (None: in memory).
-    """
-
-    def __init__(self, env_factory: Any, net_cfg: NetConfig, cfg: A3CConfig,
-                 seeds: Sequence[int], *, batch: int = DEFAULT_BATCH,
-                 device: str | None = "cpu", out_dir: Any = None) -> None:
-        if not seeds:
-            raise ConfigError("packed runs need at least one seed")
-        if net_cfg.encoder == "cnn" or net_cfg.prev_view_input:
-            raise ConfigError("packed runs need a frozen encoder and no previous-view slot")
-        self.cfg, self.net_cfg, self.seeds = cfg, net_cfg, [int(s) for s in seeds]
-        self.batch, self.device = int(batch), resolve_device(device)
-        self.env = env_factory()
-        self.frozen = build_frozen_encoder(net_cfg)
-        models = []
-        for s in self.seeds:
-            torch.manual_seed(s)
-            models.append(ActorCritic(net_cfg))
-        self.names = [n for n, _ in models[0].named_parameters()]
-        self.params: Params = {
-            n: torch.stack([dict(m.named_parameters())[n].detach() for m in models])
-            .to(self.device).requires_grad_(True) for n in self.names}
-        self.optimizer = torch.optim.Adam(list(self.params.values()), lr=cfg.lr,
-                                          betas=cfg.adam_betas, eps=cfg.adam_eps,
-                                          amsgrad=cfg.amsgrad, fused=cfg.fused or None)
-        self.venvs = [LatticeVecEnv(self.env, self.batch) for _ in self.seeds]
-        self.rngs = [np.random.default_rng(s) for s in self.seeds]
-        for v, s in zip(self.venvs, self.seeds, strict=True):
-            v.seed(s)
-            v.reset()
-        self.table = self.venvs[0].feature_table(self.frozen).to(self.device)
-        r, b = len(self.seeds), self.batch
-        z = torch.zeros(r, b, net_cfg.lstm_size, device=self.device)
-        self.state = (z, z.clone(), torch.zeros(r, b, net_cfg.n_actions, device=self.device))
-        self.fresh = torch.ones(r, b, dtype=torch.bool, device=self.device)
-        self.episodes = [0] * r
-        self.out_dir = Path(out_dir) if out_dir is not None else None
-        self.records: list[list[dict[str, Any]]] = [[] for _ in self.seeds]
+    def __init__(self, venvs: Sequence[Any]) -> None:
+        self.venvs = list(venvs)
+        self.per_run = self.venvs[0].n_slots
+        self.n_slots = self.per_run * len(self.venvs)
+        self.n_views = self.venvs[0].n_views
         self.env_steps = 0
-        e = net_cfg.embed_dim
-        self._tables = torch.func.vmap(lambda p: _tables(p, e, self.table))
-        self._step = torch.func.vmap(lambda p, s, pre: core_step(p, e, s, pre=pre))
-        self._seq = torch.func.vmap(
-            lambda p, vi, ti, s, st: _sequence_forward(p, e, self.table, vi, ti, s, st))
+        """Slot steps taken so far (benchmarks)."""
 
-    def _indices(self) -> tuple[torch.Tensor, torch.Tensor]:
-        vi = torch.from_numpy(np.stack([v.view_index for v in self.venvs])).to(self.device)
-        ti = torch.from_numpy(np.stack([v.target_index for v in self.venvs])).to(self.device)
-        return vi, ti
+    @property
+    def view_index(self) -> np.ndarray:
+        return np.concatenate([v.view_index for v in self.venvs])
 
-    def update(self) -> list[list[dict[str, Any]]]:
-        """One rollout of t_max steps in every run and one Adam step per run."""
-        cfg, r, b, t_max = self.cfg, len(self.seeds), self.batch, self.cfg.t_max
-        runs = torch.arange(r, device=self.device)[:, None]
-        finals: list[list[dict[str, Any]]] = [[] for _ in range(r)]
-        with torch.no_grad():
-            obs_pre, tgt_pre = self._tables(self.params)                       # (R, C, H)
-            keep = (~self.fresh).unsqueeze(-1)
-            start_state = (self.state[0] * keep, self.state[1] * keep, self.state[2] * keep)
-            state = start_state
-            vis, tis, acts, starts = [], [], [], []
-            rewards = np.zeros((r, t_max, b))
-            ends = np.zeros((r, t_max, b), bool)
-            for t in range(t_max):
-                vi, ti = self._indices()
-                starts.append(self.fresh)
-                keep = (~self.fresh).unsqueeze(-1)
-                state = (state[0] * keep, state[1] * keep, state[2] * keep)
-                logits, _, state = self._step(self.params, state,
-                                              obs_pre[runs, vi] + tgt_pre[runs, ti])
-                a = torch.stack([sample_actions(logits[i], self.rngs[i]) for i in range(r)])
-                done = np.zeros((r, b), bool)
-                for i, v in enumerate(self.venvs):
-                    res = v.step(a[i].numpy())
-                    rewards[i, t], ends[i, t], done[i] = res.rewards, res.done, res.done
-                    finals[i] += res.final
-                self.fresh = torch.from_numpy(done).to(self.device)
-                vis.append(vi)
-                tis.append(ti)
-                acts.append(a.to(self.device))
-            vi, ti = self._indices()
-            _, v_next, _ = self._step(self.params, state, obs_pre[runs, vi] + tgt_pre[runs, ti])
-        self.state = state
-        view_idx = torch.stack(vis, 1)                                             # (R, T, B)
-        target_idx = torch.stack(tis, 1)
-        logits, values, _ = self._seq(self.params, view_idx, target_idx, start_state,
-                                      torch.stack(starts, 1))
-        lc = cfg.loss
-        vals = values.detach().to("cpu", torch.float64).numpy()
-        boot = np.where(ends[:, -1], 0.0, v_next.to("cpu", torch.float64).numpy())
-        ret = np.zeros_like(vals)
-        adv = np.zeros_like(vals)
-        for i in range(r):
-            ret[i], adv[i] = gae_returns(rewards[i], vals[i], boot[i], ends[i], lc.gamma,
-                                         lc.tau)
-        dev, dt = self.device, values.dtype
-        terms = policy_value_terms(logits, values, torch.stack(acts, 1),
-                                   torch.from_numpy(ret).to(dev, dt),
-                                   torch.from_numpy(adv).to(dev, dt), lc)
-        self.optimizer.zero_grad(set_to_none=True)
-        (terms.total / b).backward()
-        if cfg.max_grad_norm:  # clip_grad_norm_ per run
-            grads = [p.grad for p in self.params.values() if p.grad is not None]
-            norms = torch.stack([g.flatten(1).pow(2).sum(1) for g in grads]).sum(0).sqrt()
-            coef = (cfg.max_grad_norm / (norms + 1e-6)).clamp(max=1.0)
-            for g in grads:
-                g.mul_(coef.view(-1, *([1] * (g.dim() - 1))))
-        self.optimizer.step()
-        self.env_steps += r * b * t_max
-        return finals
+    @property
+    def target_index(self) -> np.ndarray:
+        return np.concatenate([v.target_index for v in self.venvs])
 
-    def train(self) -> list[list[dict[str, Any]]]:
-        """Until every run has ``cfg.episodes`` episodes; returns each run's records."""
-        csvs = []
-        if self.out_dir is not None:
-            for i, s in enumerate(self.seeds):
-                d = self.out_dir / f"run_{i}"
-                (d / "checkpoints").mkdir(parents=True, exist_ok=True)
-                (d / "config.json").write_text(json.dumps({
-                    "algorithm": "a3c", "net": to_dict(self.net_cfg),
-                    "a3c": {**to_dict(self.cfg), "seed": s},
-                    "engine": {"name": "batched-packed", "runs": len(self.seeds),
-                               "batch": self.batch, "device": str(self.device)}}, indent=1))
-                csvs.append(CSVMetrics(d / "metrics.csv"))
-        t0 = time.perf_counter()
+    def step(self, actions: Any, *, autoreset: bool = True) -> StepResult:
+        a = np.asarray(actions).reshape(len(self.venvs), self.per_run)
+        parts = [v.step(a[i], autoreset=autoreset) for i, v in enumerate(self.venvs)]
+        self.env_steps += self.n_slots
+        final = []
+        for i, res in enumerate(parts):
+            for f in res.final:
+                final.append({**f, "slot": f["slot"] + i * self.per_run})
+        return StepResult(*(np.concatenate([getattr(r, k) for r in parts]) for k in
+                            ("rewards", "terminated", "truncated", "collided", "final_view")),
+                          final)
+
+
+class StackedRng:
+    """The members' numpy generators as one: ``random(R * B)`` draws B from each in turn."""
+
+    def __init__(self, rngs: Sequence[np.random.Generator]) -> None:
+        self.rngs = list(rngs)
+
+    def random(self, n: int) -> np.ndarray:
+        k = n // len(self.rngs)
+        return np.concatenate([g.random(k) for g in self.rngs])
+
+
+class _AllViewTables(ActingTables):
+    """Acting tables of packed runs: every run's image part of every view, computed at
+    once (rows run-major), looked up at ``view + run * n_views``."""
+
+    def __init__(self, params: Params, embed_dim: int, n_views: int, runs: int,
+                 per_run: int, features: Any) -> None:
+        super().__init__(params, embed_dim, n_views * runs, lambda rows: features(rows % n_views))
+        self.offset = (torch.arange(runs * per_run, device=self._obs.device) // per_run) \
+            * n_views
+
+    def pre(self, view_idx: torch.Tensor, target_idx: torch.Tensor) -> torch.Tensor:
+        if not bool(self._filled.all()):
+            self._fill(torch.arange(self._filled.shape[0], device=self._obs.device))
+        return self._obs[view_idx + self.offset] + self._tgt[target_idx + self.offset]
+
+
+class PackedTrainer(BatchedTrainer):
+    """The driver of a packed group (see the module docstring); build it with
+    :meth:`from_members`, never with the trainer constructor."""
+
+    members: list[BatchedTrainer]
+
+    @classmethod
+    def from_members(cls, members: Sequence[BatchedTrainer]) -> PackedTrainer:
+        check_packable(members)
+        self = cls.__new__(cls)
+        m0 = members[0]
+        self.members = list(members)
+        self.cfg, self.net_cfg, self.device = m0.cfg, m0.net_cfg, m0.device
+        self.run_batch = m0.batch
+        self.batch = m0.batch * len(members)
+        self.model, self.frozen, self.env = m0.model, m0.frozen, m0.env
+        self.aux = {}
+        self.on_gradients = None
+        self.teacher_spec = None
+        self.prev_view_spec = None
+        self.episodes_done = 0
+        return self
+
+    # -- the four hooks -------------------------------------------------------------------
+    def params(self) -> Params:
+        per = [dict(m.model.named_parameters()) for m in self.members]
+        return RunParams({n: torch.stack([p[n] for p in per]) for n in per[0]})
+
+    def step_optimizer(self, loss: torch.Tensor) -> None:
+        for m in self.members:
+            m.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.apply_gradients()
+
+    def apply_gradients(self) -> None:
+        for m in self.members:
+            if not getattr(m, "packed_done", False):
+                m.apply_gradients()
+
+    def run_rngs(self) -> list[np.random.Generator]:
+        return [m.rng for m in self.members]
+
+    def run_slices(self) -> list[slice]:
+        b = self.run_batch
+        return [slice(i * b, (i + 1) * b) for i in range(len(self.members))]
+
+    def view_rows(self, view_idx: torch.Tensor, target_idx: torch.Tensor,
+                  slots: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        c, r = self.venv.n_views, len(self.members)
+        if slots is None:
+            slots = torch.arange(view_idx.shape[1], device=view_idx.device)
+        off = (slots // self.run_batch) * c
+        rows = torch.arange(c, device=view_idx.device).repeat(r)
+        return rows, view_idx + off, target_idx + off
+
+    def acting_tables(self) -> ActingTables:
+        return _AllViewTables(self.params(), self.net_cfg.embed_dim, self.venv.n_views,
+                              len(self.members), self.run_batch, self.features)
+
+    # -- state ----------------------------------------------------------------------------
+    def _setup(self) -> None:
+        for m in self.members:
+            m._setup()
+        ms = self.members
+        self.venv = StackedVecEnv([m.venv for m in ms])  # type: ignore[assignment]
+        self.rng = StackedRng([m.rng for m in ms])  # type: ignore[assignment]
+        self.table, self.images, self.prev_table = ms[0].table, None, None
+        self.state = tuple(torch.cat([m.state[k] for m in ms]) for k in range(3))  # type: ignore
+        self.fresh = torch.cat([m.fresh for m in ms])
+        self.t_episode = np.concatenate([m.t_episode for m in ms])
+        self.slot_episode = np.concatenate([m.slot_episode for m in ms])
+        self.next_episode = max(m.next_episode for m in ms)
+
+    # -- the loop -------------------------------------------------------------------------
+    def train(self) -> list[TrainResult]:  # type: ignore[override]
+        """Train every member to its budget (each its own run folder, checkpoints and
+        records, as :meth:`BatchedTrainer.train`); returns the members' results."""
+        begun = [m.begin_training() for m in self.members]
         threads = torch.get_num_threads()
         torch.set_num_threads(self.cfg.torch_threads)
+        b = self.run_batch
         try:
-            while min(self.episodes) < self.cfg.episodes:
-                for i, fins in enumerate(self.update()):
-                    for f in fins[:self.cfg.episodes - self.episodes[i]]:
-                        self.episodes[i] += 1
-                        rec = {"episode": self.episodes[i], "worker": f["slot"],
-                               "task": f["task"], "task_index": f["task_index"],
-                               "return": f["return"], "length": f["length"],
-                               "success": f["success"],
-                               "spl": spl(f["success"], f["shortest_path"], f["length"]),
-                               "collisions": f["collisions"],
-                               "shortest_path": f["shortest_path"], "env_steps": f["length"],
-                               "elapsed_s": round(time.perf_counter() - t0, 3)}
-                        self.records[i].append(rec)
-                        if csvs:
-                            csvs[i].on_episode(rec)
+            self._setup()
+            for m, (cbs, result) in zip(self.members, begun, strict=True):
+                m.packed_done = m.episodes_done >= m.cfg.episodes  # type: ignore[attr-defined]
+                if m.packed_done:  # resumed at its budget: only its final files are left
+                    m._final_rng = m.rng_snapshot()
+                    m.finish_training(cbs, result)
+            while not all(m.packed_done for m in self.members):  # type: ignore[attr-defined]
+                finals, stats = self.update()
+                for f in finals:
+                    i = f["slot"] // b
+                    m, (cbs, result) = self.members[i], begun[i]
+                    if m.packed_done or m.episodes_done >= m.cfg.episodes:  # type: ignore
+                        continue
+                    f = {**f, "slot": f["slot"] % b}
+                    rec = m.record(f, stats[i] if isinstance(stats, list) else stats)
+                    if not m._on_record(rec, cbs, result, m.rng_snapshot) or \
+                            m.episodes_done >= m.cfg.episodes:
+                        m.packed_done = True  # type: ignore[attr-defined]
+                        m._final_rng = m.rng_snapshot()
+                        m.finish_training(cbs, result)
         finally:
             torch.set_num_threads(threads)
-            for c in csvs:
-                c.close()
-        if self.out_dir is not None:
-            for i in range(len(self.seeds)):
-                model = self.model(i)
-                meta = make_meta(self.net_cfg, self.frozen, self.env, algorithm="a3c",
-                                 episodes=self.episodes[i],
-                                 config={"a3c": {**to_dict(self.cfg), "seed": self.seeds[i]}})
-                save_checkpoint(self.out_dir / f"run_{i}" / "checkpoints" / "final.pt",
-                                model.state_dict(), meta)
-        return self.records
+            for cbs, result in begun:
+                for cb in cbs:
+                    cb.on_train_end(result)
+        return [result for _, result in begun]
 
-    def model(self, i: int) -> ActorCritic:
-        """Run i's network as a plain ActorCritic (CPU)."""
-        m = ActorCritic(self.net_cfg)
-        m.load_state_dict({n: self.params[n][i].detach().cpu() for n in self.names})
-        return m
+    def record(self, f: dict[str, Any], stats: Any) -> dict[str, Any]:  # pragma: no cover
+        raise NotImplementedError("a packed driver's episodes are recorded by its members")
 
 
-__all__ = ["PackedA3C"]
+class PackedA3C(BatchedA3CTrainer, PackedTrainer):
+    """Packed batched A3C runs."""
+
+
+class PackedPPO(BatchedPPOTrainer, PackedTrainer):
+    """Packed PPO runs."""
+
+
+class PackedISAR(BatchedISARTrainer, PackedTrainer):
+    """Packed ISAR runs (first or second order)."""
+
+
+PACKED: dict[type, type[PackedTrainer]] = {BatchedA3CTrainer: PackedA3C,
+                                           BatchedPPOTrainer: PackedPPO,
+                                           BatchedISARTrainer: PackedISAR}
+"""Single-run trainer class -> its packed driver."""
+
+
+def packing_refusal(members: Sequence[Any]) -> str | None:
+    """Why these trainers cannot be packed, or None (for a logged fallback)."""
+    if not members:
+        return "no members"
+    m0 = members[0]
+    if type(m0) not in PACKED or any(type(m) is not type(m0) for m in members):
+        return (f"packing is implemented for {sorted(c.algorithm for c in PACKED)} on the "
+                f"batched engine, all members of one algorithm; got "
+                f"{sorted({type(m).__name__ for m in members})}")
+    if m0.net_cfg.encoder == "cnn":
+        return "packed runs need a frozen encoder (the trainable CNN encodes per run)"
+    if getattr(m0, "teacher_spec", None) is not None or m0.prev_view_spec is not None:
+        return "packed runs do not take the curriculum teacher or the previous-view input"
+    if any(getattr(m.env_factory, "augment", None) is not None for m in members):
+        return "imagery randomisation (augment) gives each run its own view tables"
+    if m0.aux:
+        return f"{m0.algorithm} trains modules beside the policy ({sorted(m0.aux)})"
+    ref = _shape(m0)
+    for m in members[1:]:
+        if _shape(m) != ref:
+            return (f"members differ in network, batch, device or settings other than "
+                    f"seed and budget: {ref} vs {_shape(m)}")
+    return None
+
+
+def _shape(m: Any) -> tuple[Any, ...]:
+    cfg = {k: v for k, v in to_dict(m.cfg).items() if k not in ("seed", "episodes")}
+    return (to_dict(m.net_cfg), m.batch, str(m.device), cfg,
+            [t.name for t in m.env.unwrapped.tasks])
+
+
+def check_packable(members: Sequence[Any]) -> None:
+    reason = packing_refusal(members)
+    if reason is not None:
+        raise ConfigError(f"these runs cannot be packed: {reason}")
+
+
+def pack(members: Sequence[BatchedTrainer]) -> PackedTrainer:
+    """The driver of a packed group of member trainers (see the module docstring)."""
+    check_packable(members)
+    return PACKED[type(members[0])].from_members(members)
+
+
+def train_packed(members: Sequence[BatchedTrainer]) -> list[TrainResult]:
+    """Train member trainers packed in one batch; returns their results in order."""
+    t0 = time.perf_counter()
+    results = pack(members).train()
+    log.info("packed %d %s runs in %.1f s", len(members), members[0].algorithm,
+             time.perf_counter() - t0)
+    return results
+
+
+__all__ = ["PackedTrainer", "PackedA3C", "PackedPPO", "PackedISAR", "pack", "train_packed",
+           "packing_refusal", "check_packable"]

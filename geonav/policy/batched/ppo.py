@@ -74,39 +74,50 @@ class BatchedPPOTrainer(BatchedTrainer):
                          **kwargs)
 
     def ppo_loss(self, ro: RolloutBatch, slots: torch.Tensor, returns: torch.Tensor,
-                 advantages: torch.Tensor) -> dict[str, torch.Tensor]:
+                 advantages: torch.Tensor, sizes: list[int] | None = None
+                 ) -> list[dict[str, torch.Tensor]]:
+        """The clipped-surrogate loss of a minibatch of slot sequences, one per run: the
+        columns are ``sizes`` groups in run order (packed runs; None: one run)."""
         cfg = self.cfg
         logits, values = self.recompute(ro, slots)
         assert ro.logprobs is not None
         logp_all = F.log_softmax(logits, -1)
         logp = logp_all.gather(-1, ro.actions[:, slots].unsqueeze(-1)).squeeze(-1)
-        entropy = -(logp_all.exp() * logp_all).sum(-1).mean()
-        adv = advantages[:, slots]
-        if cfg.normalize_advantages and adv.numel() > 1:
-            adv = (adv - adv.mean()) / (adv.std() + 1e-8)
         ratio = (logp - ro.logprobs[:, slots]).exp()
-        pg = torch.max(-adv * ratio,
-                       -adv * ratio.clamp(1.0 - cfg.clip_coef, 1.0 + cfg.clip_coef)).mean()
-        value = (0.5 * (returns[:, slots] - values).pow(2)).mean()
-        total = pg - cfg.loss.beta * entropy + cfg.loss.value_coef * value
-        return {"total": total, "policy": pg, "value": value, "entropy": entropy}
+        out = []
+        for cols in torch.arange(len(slots)).split(sizes or [len(slots)]):
+            adv = advantages[:, slots[cols]]
+            if cfg.normalize_advantages and adv.numel() > 1:
+                adv = (adv - adv.mean()) / (adv.std() + 1e-8)
+            rho = ratio[:, cols]
+            pg = torch.max(-adv * rho,
+                           -adv * rho.clamp(1.0 - cfg.clip_coef, 1.0 + cfg.clip_coef)).mean()
+            lp = logp_all[:, cols]
+            entropy = -(lp.exp() * lp).sum(-1).mean()
+            value = (0.5 * (returns[:, slots[cols]] - values[:, cols]).pow(2)).mean()
+            total = pg - cfg.loss.beta * entropy + cfg.loss.value_coef * value
+            out.append({"total": total, "policy": pg, "value": value, "entropy": entropy})
+        return out
 
-    def update(self) -> tuple[list[dict[str, Any]], dict[str, float]]:
-        cfg = self.cfg
+    def update(self) -> tuple[list[dict[str, Any]], Any]:
+        cfg, b = self.cfg, self.run_batch
         ro, finals = self.collect(cfg.t_max, keep_policy=True)
         assert ro.values is not None
         returns, advantages = self.advantages(ro, ro.values)
-        n_mb = min(cfg.minibatches, self.batch)
-        out: dict[str, torch.Tensor] = {}
-        for _ in range(cfg.epochs):
-            perm = torch.randperm(self.batch, device=self.device)
-            for mb in perm.chunk(n_mb):
-                out = self.ppo_loss(ro, mb, returns, advantages)
-                self.step_optimizer(out["total"])
-        stats = {"policy_loss": float(out["policy"].detach()),
-                 "value_loss": float(out["value"].detach()),
-                 "entropy": float(out["entropy"].detach())}
-        return finals, stats
+        n_mb = min(cfg.minibatches, b)
+        outs: list[dict[str, torch.Tensor]] = []
+        for _ in range(cfg.epochs):  # each run's slots in its own order, from its own stream
+            perms = [torch.from_numpy(rng.permutation(b)).to(self.device) + i * b
+                     for i, rng in enumerate(self.run_rngs())]
+            for j in range(n_mb):
+                parts = [p.chunk(n_mb)[j] for p in perms]
+                outs = self.ppo_loss(ro, torch.cat(parts), returns, advantages,
+                                     [len(p) for p in parts])
+                self.step_optimizer(torch.stack([o["total"] for o in outs]).sum())
+        stats = [{"policy_loss": float(o["policy"].detach()),
+                  "value_loss": float(o["value"].detach()),
+                  "entropy": float(o["entropy"].detach())} for o in outs]
+        return finals, stats[0] if len(stats) == 1 else stats
 
 
 __all__ = ["PPOConfig", "BatchedPPOTrainer"]

@@ -121,6 +121,9 @@ class BatchedTrainer(A3CTrainer):
         if batch < 1:
             raise ConfigError(f"batch must be >= 1, got {batch}")
         self.batch = int(batch)
+        self.run_batch = self.batch
+        """Slots of one run (losses are averaged over them); a packed driver's ``batch`` is
+        the runs' slots together (:mod:`geonav.policy.batched.packed`)."""
         self.device = resolve_device(device)
         kwargs.pop("mp_context", None)
         super().__init__(env_factory, net_cfg, cfg, **kwargs)
@@ -243,6 +246,23 @@ class BatchedTrainer(A3CTrainer):
         return ActingTables(self.params(), self.net_cfg.embed_dim, self.venv.n_views,
                             self.features,
                             None if self.prev_table is None else self.prev_table.__getitem__)
+
+    def run_slices(self) -> list[slice]:
+        """The slot columns of each run: one run here, R in a packed driver."""
+        return [slice(None)]
+
+    def run_rngs(self) -> list[np.random.Generator]:
+        """The random streams of the runs, in slot order (one here; one per packed run)."""
+        return [self.rng]
+
+    def view_rows(self, view_idx: torch.Tensor, target_idx: torch.Tensor,
+                  slots: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(table rows to encode, their positions for view_idx, for target_idx): each
+        distinct view once (``slots``: the columns' slots, for packed runs)."""
+        uniq, inv = torch.unique(torch.cat([view_idx.flatten(), target_idx.flatten()]),
+                                 return_inverse=True)
+        n = view_idx.numel()
+        return uniq, inv[:n].view_as(view_idx), inv[n:].view_as(target_idx)
 
     def slot_indices(self) -> tuple[torch.Tensor, torch.Tensor]:
         v = torch.from_numpy(self.venv.view_index).to(self.device)
@@ -374,13 +394,10 @@ class BatchedTrainer(A3CTrainer):
             view_idx, target_idx, starts = view_idx[:, slots], target_idx[:, slots], \
                 starts[:, slots]
             state = (state[0][slots], state[1][slots], state[2][slots])
-        uniq, inv = torch.unique(torch.cat([view_idx.flatten(), target_idx.flatten()]),
-                                 return_inverse=True)
-        n = view_idx.numel()
-        table = self.features(uniq)
+        rows, vinv, tinv = self.view_rows(view_idx, target_idx, slots)
         logits, values, _ = sequence_forward(
-            self.params(), self.net_cfg.embed_dim, table, inv[:n].view_as(view_idx),
-            inv[n:].view_as(target_idx), state, starts, self.prev_features(uniq))
+            self.params(), self.net_cfg.embed_dim, self.features(rows), vinv, tinv, state,
+            starts, self.prev_features(rows))
         return logits, values
 
     def advantages(self, ro: RolloutBatch, values: torch.Tensor
@@ -406,20 +423,24 @@ class BatchedA3CTrainer(BatchedTrainer):
     algorithm = "a3c"
     config_key = "a3c"
 
-    def a3c_loss(self, ro: RolloutBatch) -> LossTerms:
-        """L_AC of a rollout averaged over the slots (graph kept)."""
+    def a3c_loss(self, ro: RolloutBatch) -> list[LossTerms]:
+        """L_AC of a rollout averaged over a run's slots (graph kept), one per run."""
         logits, values = self.recompute(ro)
         returns, advantages = self.advantages(ro, values)
-        terms = policy_value_terms(logits, values, ro.actions, returns, advantages,
-                                   self.cfg.loss)
-        b = float(self.batch)
-        return LossTerms(terms.total / b, terms.policy / b, terms.value / b, terms.entropy / b)
+        b = float(self.run_batch)
+        out = []
+        for s in self.run_slices():
+            t = policy_value_terms(logits[:, s], values[:, s], ro.actions[:, s],
+                                   returns[:, s], advantages[:, s], self.cfg.loss)
+            out.append(LossTerms(t.total / b, t.policy / b, t.value / b, t.entropy / b))
+        return out
 
-    def update(self) -> tuple[list[dict[str, Any]], dict[str, float]]:
+    def update(self) -> tuple[list[dict[str, Any]], Any]:
         ro, finals = self.collect(self.cfg.t_max)
         terms = self.a3c_loss(ro)
-        self.step_optimizer(terms.total)
-        return finals, loss_stats(terms, ro.view_idx.shape[0])
+        self.step_optimizer(torch.stack([t.total for t in terms]).sum())
+        stats = [loss_stats(t, ro.view_idx.shape[0]) for t in terms]
+        return finals, stats[0] if len(stats) == 1 else stats
 
 
 __all__ = ["BatchedTrainer", "BatchedA3CTrainer", "RolloutBatch", "resolve_device",
