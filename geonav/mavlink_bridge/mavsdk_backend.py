@@ -276,6 +276,13 @@ class MavsdkVehicle:
             except RuntimeError as err:
                 log.debug("MAVSDK loop already closed: %s", err)
             self._thread.join(timeout=2.0)
+        if not self._thread.is_alive() and not self._loop.is_closed():
+            # A stopped but unclosed loop prints "unclosed event loop" at exit
+            # (seen after every MAVSDK flight on ArduCopter SITL).
+            try:
+                self._loop.close()
+            except RuntimeError as err:
+                log.debug("closing the MAVSDK loop: %s", err)
 
     # --------------------------------------------------------------- state
     def state(self) -> VehicleState:

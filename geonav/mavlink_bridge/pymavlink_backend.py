@@ -53,6 +53,14 @@ _CMD_NAMES = {
 }
 
 
+def _raise_eof() -> None:
+    raise ConnectionAbortedError("EOF on TCP socket (the autopilot closed the link)")
+
+
+def _raise_reset() -> None:
+    raise ConnectionResetError("TCP connection reset by the autopilot")
+
+
 def command_name(command: int) -> str:
     """``MAV_CMD_*`` name of a command id."""
     return "MAV_CMD_" + _CMD_NAMES.get(command, str(command))
@@ -155,7 +163,7 @@ class PymavlinkVehicle:
 
     def _open(self) -> Any:
         device, baud = self.conn.pymavlink()
-        return mavutil.mavlink_connection(
+        m = mavutil.mavlink_connection(
             device,
             baud=baud,
             source_system=self._src[0],
@@ -163,6 +171,14 @@ class PymavlinkVehicle:
             autoreconnect=False,
             retries=0,
         )
+        if isinstance(m, mavutil.mavtcp):
+            # pymavlink prints "EOF on TCP socket" on stdout and returns b"" at every
+            # read of a closed peer: recv_match then spins and prints it thousands of
+            # times a second (649,379 lines in 17 s when ArduCopter SITL was killed).
+            # Raise instead: the receiver thread sees a broken link and reopens it.
+            m.handle_eof = _raise_eof
+            m.handle_disconnect = _raise_reset
+        return m
 
     def close(self) -> None:
         """Stop the threads and close the link (never raises; safe to call twice)."""
