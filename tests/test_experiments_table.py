@@ -68,7 +68,8 @@ def test_row_has_claim_ratios_ranges_verdict_and_compute(results):
     assert row == ("| [transfer A to B](docs/results/part5/report.md) (`part5`) | "
                    "0.04 (transfer 2000 vs scratch 50000) | "
                    "0.12 (transfer 100-150 vs scratch 900-1200) | "
-                   "0.12 (transfer 100-150 vs scratch 900-1200) | reproduced | "
+                   "0.12 (transfer 100-150 vs scratch 900-1200) | direction reproduced, size "
+                   "not (ours 0.12, 0.12 vs the paper's 0.04) | "
                    "10.0 min over 9 units (training wall time, summed) |")
     # idempotent, and --check agrees
     assert table.update_readme(root, readme) is False
@@ -88,7 +89,8 @@ def test_check_fails_when_a_summary_changes(results):
 
 
 @pytest.mark.parametrize(("verdict", "eval_verdict", "paper", "want"), [
-    (SHOWN, SHOWN, PAPER, "reproduced"),
+    (SHOWN, SHOWN, {"transfer": 120, "scratch": 1000}, "reproduced"),
+    (SHOWN, SHOWN, PAPER, "direction reproduced, size not (ours 0.12, 0.12 vs the paper's 0.04)"),
     (SHOWN, NONE, PAPER, "reproduced by the training-SR rule only"),
     (NONE, SHOWN, PAPER, "reproduced by the greedy-evaluation rule only"),
     (OPPOSITE, SHOWN, PAPER, "not reproduced"),
@@ -143,3 +145,14 @@ def test_old_summaries_and_errors(tmp_path):
         table.replace_block(readme.read_text(), "x")
     with pytest.raises(ConfigError, match="comes before"):
         table.replace_block(f"{table.END}\n{table.START}\n", "x")
+
+
+def test_a_ratio_far_from_the_papers_is_direction_only():
+    from geonav.experiments.table import size_qualified
+
+    assert size_qualified("reproduced", [1.8, 2.1], 2.0) == "reproduced"
+    assert size_qualified("reproduced", [1.22, 1.20], 5.0) == (
+        "direction reproduced, size not (ours 1.22, 1.20 vs the paper's 5.00)")
+    assert size_qualified("reproduced", [1.9, None], 2.0) == "reproduced"
+    assert size_qualified("no effect shown at this budget", [1.0], 5.0) == \
+        "no effect shown at this budget"

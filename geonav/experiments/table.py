@@ -15,6 +15,8 @@ methods the paper's ratio is formed the same way. Verdicts, per rule, from the r
 is shown the other way, else "no effect shown at this budget"; the row's verdict is
 "reproduced" when both rules reproduce, "not reproduced" when either contradicts the
 paper, "reproduced by the ... rule only" when one does and the other shows nothing.
+A "reproduced" direction whose ratio (by any rule) lies more than a factor
+:data:`SIZE_TOLERANCE` from the paper's reads "direction reproduced, size not (...)".
 
 Usage: ``geonav experiment table docs/results --readme README.md [--check]`` or
 ``python -m geonav.experiments.table docs/results --readme README.md [--check]``.
@@ -101,6 +103,31 @@ def rule_outcome(verdict: str | None, expected_faster: str | None) -> str:
     return "reproduced" if faster == expected_faster else "not reproduced"
 
 
+SIZE_TOLERANCE = 2.0
+"""How far (as a factor) our ratio may lie from the paper's for "reproduced" to stand."""
+
+
+def _median_ratio(a: dict[str, Any] | None, b: dict[str, Any] | None) -> float | None:
+    try:
+        ra, rb = float(a["median"]), float(b["median"])  # type: ignore[index]
+    except (TypeError, KeyError, ValueError):
+        return None
+    return rb / ra if ra > 0 else None
+
+
+def size_qualified(verdict: str, ours: list[float | None], paper_ratio: float | None) -> str:
+    """``verdict``, or "direction reproduced, size not" when a rule's ratio lies more than
+    :data:`SIZE_TOLERANCE` from the paper's."""
+    if verdict != "reproduced" or not paper_ratio:
+        return verdict
+    off = [r for r in ours if r is not None and
+           abs(math.log(r / paper_ratio)) > math.log(SIZE_TOLERANCE)]
+    if not off:
+        return verdict
+    return (f"direction reproduced, size not (ours {', '.join(f'{r:.2f}' for r in ours if r)}"
+            f" vs the paper's {paper_ratio:.2f})")
+
+
 def combined_verdict(outcomes: dict[str, str]) -> str:
     """The row's verdict from the per-rule outcomes (see the module docstring)."""
     vals = list(outcomes.values())
@@ -147,12 +174,15 @@ def comparison_row(folder: Path, summary: dict[str, Any], comp: dict[str, Any],
         expected = b if paper[b] < paper[a] else a if paper[a] < paper[b] else None
     else:
         paper_text = "n/a (not in this summary)" if "paper" not in comp else "n/a"
-    cells, outcomes = [], {}
+    cells, outcomes, ours = [], {}, []
     for _, conv_key, verdict_key, rule in RULES:
         cells.append(_ratio(a, b, methods[a].get(conv_key), methods[b].get(conv_key)))
         outcomes[rule] = rule_outcome(comp.get(verdict_key), expected)
+        ours.append(_median_ratio(methods[a].get(conv_key), methods[b].get(conv_key)))
+    paper_ratio = paper[b] / paper[a] if expected is not None else None
+    verdict = size_qualified(combined_verdict(outcomes), ours, paper_ratio)
     return (f"| {claim} | {paper_text} | {cells[0]} | {cells[1]} | "
-            f"{combined_verdict(outcomes)} | {_compute(comp, order)} |")
+            f"{verdict} | {_compute(comp, order)} |")
 
 
 def render_table(results_dir: str | Path, link_base: str | Path = ".") -> str:
