@@ -141,7 +141,7 @@ def test_sigterm_lands_a_background_fly_whose_sigint_is_ignored(scene: Any, tmp_
     assert proc.returncode == 128 + signal.SIGTERM, (stdout, stderr)
     assert "Traceback" not in stderr
     lines = [line for line in stdout.splitlines() if line.strip()]
-    assert len(lines) == 1 and lines[0].startswith("interrupted: interrupted by SIGTERM")
+    assert len(lines) == 1 and lines[0].startswith("interrupted by SIGTERM;")
     assert "end land confirmed, disarmed" in lines[0]
     result = read_record(out / "flight.jsonl")[-1]
     assert result["kind"] == "result" and result["outcome"] == "interrupted"
@@ -279,6 +279,21 @@ def test_takeover_airborne_starts_from_the_current_position(scene: Any, tmp_path
     assert all(r["measured_alt_m"] == pytest.approx(12.0, abs=1.0) for r in steps)
 
 
+def test_takeover_airborne_refuses_a_vehicle_armed_on_the_ground(scene: Any,
+                                                                 tmp_path: Path) -> None:
+    # Seen on ArduCopter SITL: after an operator's LOITER the vehicle sank to the ground
+    # and stayed armed; the refusal said "give a positive number of metres".
+    with _emulator(scene, "ardupilot", airborne_alt_m=0.3) as emu:
+        result = _fly(scene, emu, ScriptedPolicy([1], META), tmp_path, takeover_airborne=True)
+        assert result.outcome == "refused" and result.exit_code == 3
+        assert "armed but on the ground" in result.reason, result.reason
+        # only telemetry requests (SET_MESSAGE_INTERVAL, REQUEST_MESSAGE): no mode, arm,
+        # take-off or landing command, no setpoint
+        assert {c.command for c in _geonav_commands(emu)} <= {
+            M.MAV_CMD_SET_MESSAGE_INTERVAL, M.MAV_CMD_REQUEST_MESSAGE}
+        assert not emu.setpoints and emu.armed
+
+
 # ----------------------------------------------------------------- position fence
 def test_overshoot_past_the_fence_ends_in_landing(scene: Any, tmp_path: Path) -> None:
     # Fence margin = one 5 m step: setpoints stay 5 m inside the scene, the vehicle may
@@ -378,6 +393,7 @@ def test_a_dead_autopilot_is_one_line_and_bounded(
     assert result.outcome == "link_lost" and result.exit_code == 4
     assert "\n" not in result.reason and "failsafe must act" in result.reason
     assert not result.end_ok and "NOT confirmed" in result.summary()
+    assert "link lost: link lost" not in result.summary()  # the outcome is said once
     assert errors == []  # no thread died with a traceback
     # Nothing on the console from the libraries: pymavlink printed "EOF on TCP socket"
     # at every read of the closed port (649,379 lines when ArduCopter SITL was killed).

@@ -90,6 +90,8 @@ OUTCOMES: dict[str, int] = {
     "safety_stop": 6,
     "interrupted": 130,
 }
+MIN_TAKEOVER_ALT_M = 1.0
+"""--takeover-airborne refuses a vehicle lower than this above home (armed on the ground)."""
 OUTCOME_WORDS = {
     "reached": "reached the target",
     "missed": "did not reach the target",
@@ -350,8 +352,11 @@ class FlightResult:
                 f"end {self.end_action} NOT confirmed (disarmed {self.disarmed}); "
                 "the autopilot's failsafe must act"
             )
+        words = OUTCOME_WORDS[self.outcome]
+        head = self.reason if self.reason.lower().startswith(words) else \
+            f"{words}: {self.reason}"
         return (
-            f"{OUTCOME_WORDS[self.outcome]}: {self.reason}; {self.steps} steps; {end}; "
+            f"{head}; {self.steps} steps; {end}; "
             f"record {self.record_path}; track {self.png_path}"
         )
 
@@ -596,6 +601,11 @@ def _run_flight(
             # The take-off point is home; the EKF origin is usually there too.
             home_down = s.origin.alt_m - s.home.alt_m if s.home is not None else 0.0
             alt_m = float(home_down - s.position.down_m)
+            if alt_m < MIN_TAKEOVER_ALT_M:
+                raise PreflightRefused(
+                    f"the vehicle is armed but on the ground ({alt_m:.1f} m above home): "
+                    "--takeover-airborne takes over a vehicle in the air; disarm it, or fly "
+                    f"it above {MIN_TAKEOVER_ALT_M:g} m first")
             rec.event(f"taking over an airborne vehicle at {alt_m:.1f} m above home")
             try:
                 plan = plan_flight(scene, meta, replace(cfg, alt_m=alt_m, start_cell=None))
