@@ -22,11 +22,10 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from bench_learning import quick_b_task  # noqa: E402
+from bench_learning import quick_b_env  # noqa: E402
 
 import geonav.policy.isar as isar_mod  # noqa: E402
 from geonav.policy.config import NetConfig  # noqa: E402
-from geonav.policy.envs import EnvFactory  # noqa: E402
 from geonav.policy.evaluation import evaluate_both  # noqa: E402
 from geonav.policy.isar import ISARTrainer  # noqa: E402
 from geonav.policy.meta_config import ISARConfig  # noqa: E402
@@ -40,10 +39,7 @@ def main() -> None:
     ap.add_argument("--cache", default=str(ROOT / "bench" / ".cache"))
     args = ap.parse_args()
     torch.set_num_threads(1)
-    scene, tasks = quick_b_task(Path(args.cache))
-    factory = EnvFactory(scene, tasks)
-    env = factory()
-    n_px = int(env.observation_space["image"].shape[0])
+    factory, env, n_px = quick_b_env(Path(args.cache))
     ratios: list[float] = []
     original = isar_mod.sgd_step
 

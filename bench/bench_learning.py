@@ -49,6 +49,15 @@ def quick_b_task(cache: Path) -> tuple[str, str]:
     return str(scene), str(tasks)
 
 
+def quick_b_env(cache: Path) -> tuple[Any, Any, int]:
+    """The quick B task as an env factory, one env of it and its view side in pixels."""
+    from geonav.policy.envs import EnvFactory
+
+    factory = EnvFactory(*quick_b_task(cache))
+    env = factory()
+    return factory, env, int(env.observation_space["image"].shape[0])
+
+
 class _SB3Actor:
     def __init__(self, model: Any, greedy: bool) -> None:
         self.model, self.greedy = model, greedy

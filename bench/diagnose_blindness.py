@@ -29,7 +29,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from bench_learning import quick_b_task  # noqa: E402
+from bench_learning import quick_b_env  # noqa: E402
 
 from geonav.policy.a3c import A3CTrainer  # noqa: E402
 from geonav.policy.agent import obs_inputs  # noqa: E402
@@ -105,10 +105,7 @@ def main() -> None:
     ap.add_argument("--cache", default=str(ROOT / "bench" / ".cache"))
     args = ap.parse_args()
     torch.set_num_threads(1)
-    scene, tasks = quick_b_task(Path(args.cache))
-    factory = EnvFactory(scene, tasks)
-    env = factory()
-    n_px = int(env.observation_space["image"].shape[0])
+    factory, env, n_px = quick_b_env(Path(args.cache))
     seeds = [int(s) for s in args.seeds.split(",")]
     if args.mode == "layers":
         net_kw = {"init": args.init, "input_norm": args.input_norm,

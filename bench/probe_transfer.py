@@ -126,8 +126,6 @@ def main() -> None:
     s = int(args.scene_size)
     scene_a = ensure_scene(cache / f"probe-A{s}", "A", "residential", 0, args.scene_size, 0.5)
     scene_b = ensure_scene(cache / f"probe-B{s}", "B", "campus", 1, args.scene_size, 0.5)
-    scene_a = scene_a if isinstance(scene_a, Scene) else Scene.open(cache / f"probe-A{s}")
-    scene_b = scene_b if isinstance(scene_b, Scene) else Scene.open(cache / f"probe-B{s}")
     cam = Camera(PX)
     kw: dict[str, Any] = dict(size_m=140.0, alt_m=args.alt, step_m=20.0, max_steps=50,
                               camera=cam)
