@@ -64,3 +64,37 @@ def test_device_checks():
     if not torch.cuda.is_available():
         with pytest.raises(ConfigError, match="no GPU"):
             resolve_device("cuda")
+
+
+def test_lr_warmup_ramps_the_rate_and_continues_after_resume(tmp_path):
+    """lr_warmup = 4: the k-th optimiser step (k = 1, 2, ...) runs at lr * min(1, k / 4),
+    read from the optimiser's own step count, so a resumed run continues its ramp."""
+    from geonav.policy.optim import warm_up_lr
+
+    p = torch.nn.Parameter(torch.zeros(3))
+    opt = torch.optim.Adam([p], lr=1.0)
+    seen = []
+    for _ in range(6):
+        p.grad = torch.ones(3)
+        warm_up_lr(opt, 0.1, 4)
+        seen.append(opt.param_groups[0]["lr"])
+        opt.step()
+    assert seen == pytest.approx([0.025, 0.05, 0.075, 0.1, 0.1, 0.1])
+    resumed = torch.optim.Adam([p], lr=1.0)
+    resumed.load_state_dict(opt.state_dict())
+    warm_up_lr(resumed, 0.1, 10)
+    assert resumed.param_groups[0]["lr"] == pytest.approx(0.07)  # step 7 of a 10-step ramp
+
+    factory = tiny_env_factory(cells=4, max_steps=7)
+    net = tiny_net("random", 32)
+    moved = {}
+    for warm in (0, 1000):
+        cfg = A3CConfig(episodes=4, workers=0, t_max=3, seed=1, lr=1e-3, lr_warmup=warm)
+        tr = BatchedA3CTrainer(factory, net, cfg, batch=2, tensorboard=False)
+        before = [q.detach().clone() for q in tr.params_list]
+        tr.train()
+        moved[warm] = sum(float((q.detach() - b).abs().sum())
+                          for q, b in zip(tr.params_list, before, strict=True))
+    assert 0 < moved[1000] < 0.1 * moved[0]
+    with pytest.raises(ConfigError, match="lr_warmup"):
+        A3CConfig(lr_warmup=-1)

@@ -44,7 +44,7 @@ from geonav.policy.encoders import FrozenEncoder, build_frozen_encoder
 from geonav.policy.evaluation import spl
 from geonav.policy.losses import actor_critic_loss
 from geonav.policy.model import ActorCritic, State
-from geonav.policy.optim import SharedAdam
+from geonav.policy.optim import SharedAdam, warm_up_lr
 
 log = logging.getLogger(__name__)
 
@@ -207,6 +207,7 @@ class A3CWorker:
         if self._shared_params is not None:
             for p, sp in zip(self._params, self._shared_params, strict=True):
                 sp.grad = p.grad
+        warm_up_lr(self.optimizer, self.cfg.lr, self.cfg.lr_warmup)
         self.optimizer.step()
 
     def run_episode(self, episode: int) -> dict[str, Any]:

@@ -113,6 +113,10 @@ class A3CConfig:
     """Steps per rollout between updates (K*N = 15, as often as ISAR's adaptive updates)."""
     lr: float = 1e-4
     """Learning rate of the shared Adam."""
+    lr_warmup: int = 0
+    """Optimiser steps over which the rate ramps linearly up to ``lr`` (0: none). Meant for
+    fine-tuning a trained policy, where a fresh Adam's first steps are about ``lr`` on every
+    weight whatever the gradient."""
     adam_eps: float = 1e-3
     """Adam epsilon (SAVN's SharedAdam)."""
     adam_betas: tuple[float, float] = (0.9, 0.999)
@@ -153,6 +157,8 @@ class A3CConfig:
             raise ConfigError(f"t_max must be >= 1, got {self.t_max}")
         if self.lr <= 0:
             raise ConfigError(f"lr must be positive, got {self.lr}")
+        if self.lr_warmup < 0:
+            raise ConfigError(f"lr_warmup must be >= 0, got {self.lr_warmup}")
         if self.eval_every < -1:
             raise ConfigError(f"eval_every must be >= -1, got {self.eval_every}")
         if self.eval_max_starts < 1:

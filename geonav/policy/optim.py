@@ -59,3 +59,27 @@ class SharedAdam(torch.optim.Adam):
                 if isinstance(st.get("step"), torch.Tensor):
                     st["step"] = st["step"].to(torch.float32).reshape(())
         self.share_memory()
+
+
+def warm_up_lr(optimizer: torch.optim.Optimizer, lr: float, warmup: int) -> None:
+    """Set every group's rate for the coming step: ``lr * min(1, (n + 1) / warmup)``, where
+    n is the number of steps the optimiser has taken (read from its state, so a resumed run
+    continues its ramp). ``warmup <= 0`` leaves the rate at ``lr``.
+
+    Fine-tuning a trained policy with a fresh Adam moves every weight by about ``lr`` on
+    each of the first steps, whatever its gradient (Adam normalises by the first moments);
+    a linear ramp keeps those first steps small.
+    """
+    if warmup <= 0:
+        return
+    n = 0
+    for group in optimizer.param_groups:
+        for p in group["params"]:
+            step = optimizer.state.get(p, {}).get("step")
+            if step is not None:
+                n = int(step.item() if isinstance(step, torch.Tensor) else step)
+            break
+        break
+    scale = min(1.0, (n + 1) / warmup)
+    for group in optimizer.param_groups:
+        group["lr"] = lr * scale

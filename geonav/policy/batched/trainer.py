@@ -51,6 +51,7 @@ from geonav.policy.callbacks import Callback
 from geonav.policy.evaluation import spl
 from geonav.policy.losses import LossTerms, gae_returns, policy_value_terms
 from geonav.policy.model import State
+from geonav.policy.optim import warm_up_lr
 from geonav.vecenv import LatticeVecEnv, StepResult
 
 DEFAULT_BATCH = 16
@@ -337,6 +338,7 @@ class BatchedTrainer(A3CTrainer):
             self.on_gradients([p.grad for p in self.params_list])
         if self.cfg.max_grad_norm:
             nn.utils.clip_grad_norm_(self.params_list, self.cfg.max_grad_norm)
+        warm_up_lr(self.optimizer, self.cfg.lr, self.cfg.lr_warmup)
         self.optimizer.step()
 
     # -- rollouts (A3C and PPO) -------------------------------------------------------------
