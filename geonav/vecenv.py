@@ -201,13 +201,21 @@ class LatticeVecEnv:
             images = self.image_table()
             for i in range(0, self.n_views, chunk):
                 put(i, images[i:i + chunk])
-            return out
-        clean, c = self._clean_table(), self.n_cells
-        for k in range(self.n_variants):
-            p = self.augment.params(k)
-            for i in range(0, c, chunk):
-                put(k * c + i, augment_images(clean[i:i + chunk], p))
+        else:
+            clean, c = self._clean_table(), self.n_cells
+            for k in range(self.n_variants):
+                p = self.augment.params(k)
+                for i in range(0, c, chunk):
+                    put(k * c + i, augment_images(clean[i:i + chunk], p))
+        if getattr(frozen, "pairwise", False):  # 'corr': each row against its own target
+            out = frozen.combine(out, out[torch.from_numpy(self.target_rows)])
         return out
+
+    @property
+    def target_rows(self) -> np.ndarray:
+        """(n_views,) the table row of every row's target view (same task and variant)."""
+        rows = np.arange(self.n_views, dtype=np.int64)
+        return (rows // self.n_cells) * self.n_cells + self.target_view[self.view_task]
 
     @property
     def view_index(self) -> np.ndarray:

@@ -37,14 +37,15 @@ def torch_threads(n: int | None) -> Iterator[None]:
 
 
 def view_input(image: np.ndarray, frozen: FrozenEncoder | None,
-               key: Any = None) -> torch.Tensor:
+               key: Any = None, target: np.ndarray | None = None) -> torch.Tensor:
     """One view as the network takes it: uint8 (N, N, 3) tensor, or (F,) frozen features.
 
     ``key`` (task, cell, altitude) selects the feature cache; None encodes directly.
+    ``target``: the episode's target image (needed by a pairwise encoder, 'corr').
     """
     if frozen is None:
         return torch.from_numpy(np.ascontiguousarray(image))
-    return frozen.features(image, key)
+    return frozen.features(image, key, target=target)
 
 
 def obs_inputs(obs: dict[str, np.ndarray], info: dict[str, Any] | None,
@@ -52,7 +53,9 @@ def obs_inputs(obs: dict[str, np.ndarray], info: dict[str, Any] | None,
     """(current view, target view) inputs of an env observation; cached when ``info`` is given."""
     k_obs = cache_key(info) if (frozen is not None and info is not None) else None
     k_tgt = cache_key(info, target=True) if (frozen is not None and info is not None) else None
-    return view_input(obs["image"], frozen, k_obs), view_input(obs["target"], frozen, k_tgt)
+    tgt = obs["target"]
+    return (view_input(obs["image"], frozen, k_obs, tgt),
+            view_input(tgt, frozen, k_tgt, tgt))
 
 
 def choose_action(logits: torch.Tensor, greedy: bool, rng: np.random.Generator | None) -> int:

@@ -12,7 +12,7 @@ from typing import Any
 
 from geonav.errors import ConfigError
 
-ENCODERS = ("cnn", "random", "resnet18")
+ENCODERS = ("cnn", "random", "resnet18", "corr")
 INITS = ("orthogonal", "savn")
 INPUT_NORMS = ("center", "none")
 
@@ -23,7 +23,10 @@ class NetConfig:
 
     encoder: str = "cnn"
     """Image encoder: 'cnn' (small CNN trained end to end), 'random' (frozen random CNN,
-    cached features; tests and benchmarks) or 'resnet18' (frozen, needs geonav[resnet])."""
+    cached features; tests and benchmarks), 'resnet18' (frozen, needs geonav[resnet]) or
+    'corr' (frozen and parameter-free: each view's features are its normalised
+    cross-correlation with the episode's target view over ``corr_radius`` shifts; beyond
+    the paper, see docs/learning.md §7)."""
     encoder_weights: str | None = None
     """ResNet18 weights: a local state_dict file; None downloads torchvision's pretrained ones."""
     obs_size_px: int = 84
@@ -41,6 +44,9 @@ class NetConfig:
     """Number of discrete actions (GeoNavEnv: forward, right, left, backward)."""
     random_encoder_seed: int = 0
     """Seed of the frozen random CNN's weights (encoder='random')."""
+    corr_radius: int = 12
+    """encoder='corr': the largest shift compared, in pixels of the half-resolution grey
+    view (so +-2 * corr_radius view pixels); the features are (2 * corr_radius + 1)^2."""
     input_norm: str = "center"
     """Image scaling before the CNN encoders ('cnn', 'random'): 'center' maps uint8 to
     (x/255 - 0.5)/0.25; 'none' to [0, 1] (geonav <= 0.1; ResNet18 always uses ImageNet's
@@ -64,6 +70,14 @@ class NetConfig:
     def __post_init__(self) -> None:
         if self.encoder not in ENCODERS:
             raise ConfigError(f"encoder must be one of {ENCODERS}, not {self.encoder!r}")
+        if self.encoder == "corr":
+            if not 1 <= self.corr_radius < self.obs_size_px // 2:
+                raise ConfigError(f"corr_radius must be in 1..{self.obs_size_px // 2 - 1} "
+                                  f"for {self.obs_size_px} px views, got {self.corr_radius}")
+            if self.prev_view_input:
+                raise ConfigError("encoder 'corr' compares a view with the episode's target; "
+                                  "the previous-view slot (prev_view_input) is not supported "
+                                  "with it")
         if not 16 <= self.obs_size_px <= 1024:
             raise ConfigError(f"obs_size_px must be within 16..1024, got {self.obs_size_px}")
         if self.input_norm not in INPUT_NORMS:

@@ -1,8 +1,17 @@
-"""Image encoders: a small trainable CNN, a frozen random CNN and a frozen ResNet18.
+"""Image encoders: a small trainable CNN, a frozen random CNN, a frozen ResNet18 and the
+parameter-free view correlation.
 
 Trainable encoders live inside the actor-critic (their parameters are learned);
 frozen ones live outside it, in a :class:`FrozenEncoder` with a feature cache
 keyed by (task, cell, altitude), so each view is encoded once per process.
+
+The correlation encoder (``encoder='corr'``) is *pairwise*: a view's features are its
+normalised cross-correlation with the episode's target view at every shift within
+``corr_radius`` (:func:`view_correlation`), so they say where the target's imagery lies
+in the current view, in the same way on any scene. Its :class:`FrozenEncoder` encodes
+each image to a grey half-resolution map (``encode``) and combines a view's map with its
+target's (``combine``); ``features(image, key, target=...)`` does both. The target
+view's own features are its autocorrelation.
 
 Images enter as uint8 ``(B, N, N, 3)`` arrays/tensors (the env's layout) and
 leave as float features ``(B, F)``.
@@ -18,6 +27,7 @@ from typing import Any
 import numpy as np
 import torch
 from torch import nn
+from torch.nn import functional as F
 
 from geonav.errors import CheckpointError, ConfigError, MissingExtra
 from geonav.policy.config import NetConfig
@@ -146,39 +156,101 @@ class _ResNetInput(nn.Module):
         return (x - self.mean) / self.std
 
 
+class GreyMap(nn.Module):
+    """The per-image stage of the correlation encoder: uint8 (B, N, N, 3) -> the centred
+    grey view, 2 x 2 mean-pooled, flattened (B, (N // 2)^2)."""
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        g = images_to_float(images, "center").mean(1, keepdim=True)
+        return F.avg_pool2d(g, 2).flatten(1)
+
+
+def view_correlation(a: torch.Tensor, b: torch.Tensor, side: int, radius: int,
+                     chunk: int = 512) -> torch.Tensor:
+    """Normalised cross-correlation of square maps at every shift within ``radius``.
+
+    Args:
+        a: (M, side * side) maps of the current views; b: the same of their targets.
+    Returns:
+        (M, (2 * radius + 1)^2): entry (i, j) (row-major, shifts -radius..radius) is the mean
+        over the overlap of a[y, x] * b[y + i - radius, x + j - radius], each map first made
+        zero-mean and unit-RMS; 1 where b is a shifted a, about 0 for unrelated imagery.
+    """
+    r = radius
+    d = torch.arange(-r, r + 1, dtype=a.dtype)
+    overlap = (side - d.abs())[:, None] * (side - d.abs())[None, :]
+    outs = []
+    for i in range(0, a.shape[0], chunk):
+        x = a[i:i + chunk].reshape(-1, 1, side, side)
+        y = b[i:i + chunk].reshape(-1, 1, side, side)
+        x = x - x.mean((2, 3), keepdim=True)
+        y = y - y.mean((2, 3), keepdim=True)
+        x = x / (x.pow(2).mean((2, 3), keepdim=True).sqrt() + 1e-6)
+        y = y / (y.pow(2).mean((2, 3), keepdim=True).sqrt() + 1e-6)
+        m = x.shape[0]
+        yp = F.pad(y, (r, r, r, r)).reshape(1, m, side + 2 * r, side + 2 * r)
+        out = F.conv2d(yp, x, groups=m).reshape(m, 2 * r + 1, 2 * r + 1)
+        outs.append((out / overlap).flatten(1))
+    return torch.cat(outs) if outs else a.new_zeros((0, (2 * r + 1) ** 2))
+
+
 class FrozenEncoder:
     """A frozen image encoder with a per-process feature cache.
 
     ``encode(images)`` runs the network; ``features(image, key)`` looks the view up
-    by ``key = (task_index, cell, alt_m)`` and encodes it only the first time.
+    by ``key = (task_index, cell, alt_m)`` and encodes it only the first time. A
+    *pairwise* encoder (``pair`` given: the correlation encoder) turns ``encode``'s maps
+    of a view and of its target into the features (``combine``), so ``features`` needs
+    the target image; the cache key (task, cell, altitude) fixes the target.
     """
 
-    def __init__(self, net: nn.Module, out_dim: int, spec: dict[str, Any]) -> None:
+    def __init__(self, net: nn.Module, out_dim: int, spec: dict[str, Any],
+                 pair: Any = None) -> None:
         self.net = net.eval().requires_grad_(False)
         self.out_dim = out_dim
         self.spec = spec
+        self.pair = pair
         self._cache: dict[CacheKey, torch.Tensor] = {}
         self.hits = 0
         self.misses = 0
 
+    @property
+    def pairwise(self) -> bool:
+        """True when a view's features depend on its target view too."""
+        return self.pair is not None
+
     @torch.no_grad()
     def encode(self, images: np.ndarray | torch.Tensor) -> torch.Tensor:
-        """uint8 (B, N, N, 3) -> float (B, F)."""
+        """uint8 (B, N, N, 3) -> float (B, F) (a pairwise encoder's per-image maps)."""
         x = torch.as_tensor(images)
         if x.dim() == 3:
             x = x.unsqueeze(0)
         return self.net(x)
 
-    def features(self, image: np.ndarray, key: CacheKey | None = None) -> torch.Tensor:
-        """(F,) features of one (N, N, 3) view, cached under ``key`` when given."""
-        if key is None:
-            return self.encode(image)[0]
-        feat = self._cache.get(key)
-        if feat is None:
-            self.misses += 1
-            feat = self._cache[key] = self.encode(image)[0]
-        else:
+    @torch.no_grad()
+    def combine(self, maps: torch.Tensor, target_maps: torch.Tensor) -> torch.Tensor:
+        """Features from ``encode``'s output of views and of their targets (row by row);
+        the maps themselves for an encoder that is not pairwise."""
+        return maps if self.pair is None else self.pair(maps, target_maps)
+
+    def features(self, image: np.ndarray, key: CacheKey | None = None,
+                 target: np.ndarray | None = None) -> torch.Tensor:
+        """(F,) features of one (N, N, 3) view, cached under ``key`` when given; a pairwise
+        encoder needs the episode's ``target`` image."""
+        feat = self._cache.get(key) if key is not None else None
+        if feat is not None:
             self.hits += 1
+            return feat
+        if self.pair is not None:
+            if target is None:
+                raise ValueError("the correlation encoder compares a view with its target: "
+                                 "pass target=")
+            feat = self.combine(self.encode(image), self.encode(target))[0]
+        else:
+            feat = self.encode(image)[0]
+        if key is not None:
+            self.misses += 1
+            self._cache[key] = feat
         return feat
 
     def clear(self) -> None:
@@ -213,6 +285,10 @@ def build_frozen_encoder(cfg: NetConfig) -> FrozenEncoder | None:
         cnn = random_cnn(cfg.obs_size_px, cfg.random_encoder_seed, cfg.input_norm)
         return FrozenEncoder(cnn, cnn.out_dim, {"kind": "random", "seed": cfg.random_encoder_seed,
                                                 "input_norm": cfg.input_norm})
+    if cfg.encoder == "corr":
+        side, r = cfg.obs_size_px // 2, cfg.corr_radius
+        return FrozenEncoder(GreyMap(), (2 * r + 1) ** 2, {"kind": "corr", "radius": r},
+                             pair=lambda a, b: view_correlation(a, b, side, r))
     if cfg.encoder == "resnet18":
         trunk, dim = resnet18_trunk(cfg.encoder_weights)
         net = nn.Sequential(_ResNetInput(224), trunk)
@@ -227,4 +303,6 @@ def feature_dim(cfg: NetConfig) -> int:
     """Width F of the encoder output for a config (without building ResNet)."""
     if cfg.encoder in ("cnn", "random"):
         return SmallCNN(cfg.obs_size_px).out_dim
+    if cfg.encoder == "corr":
+        return (2 * cfg.corr_radius + 1) ** 2
     return 512

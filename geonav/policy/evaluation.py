@@ -211,14 +211,13 @@ def _view_table(env: Any, frozen: FrozenEncoder | None) -> Any:
     u = env.unwrapped
     cache = _TABLES.setdefault(u, {})
     if "images" not in cache:
-        cache["images"] = torch.from_numpy(LatticeVecEnv(u, 1).image_table())
+        cache["venv"] = LatticeVecEnv(u, 1)
+        cache["images"] = torch.from_numpy(cache["venv"].image_table())
     if frozen is None:
         return cache["images"]
     key = id(frozen)
     if key not in cache:
-        images = cache["images"]
-        cache[key] = torch.cat([frozen.encode(images[i:i + 256])
-                                for i in range(0, len(images), 256)])
+        cache[key] = cache["venv"].feature_table(frozen)
     return cache[key]
 
 

@@ -110,7 +110,7 @@ class PolicyRunner:
         if self._target is None or self._target_image is None or \
                 not np.array_equal(target, self._target_image):
             self._target_image = target.copy()
-            self._target = view_input(target, self.agent.frozen)
-        x = view_input(image, self.agent.frozen)
+            self._target = view_input(target, self.agent.frozen, target=target)
+        x = view_input(image, self.agent.frozen, target=target)
         prev = None if prev_image is None else view_input(prev_image, self.agent.frozen)
         return self.agent.step_inputs(x, self._target, greedy, prev)

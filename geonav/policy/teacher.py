@@ -90,7 +90,10 @@ def view_at(env: Any, frozen: FrozenEncoder | None, task_index: int,
     c = (int(cell[0]), int(cell[1]))
     alt = float(u.tasks[task_index].alt_m)
     key = (task_index, c, alt) if frozen is not None else None
-    return view_input(u.observation_at(task_index, c), frozen, key)
+    target = None
+    if frozen is not None and frozen.pairwise:
+        target = u.observation_at(task_index, tuple(u.tasks[task_index].target_cell))
+    return view_input(u.observation_at(task_index, c), frozen, key, target)
 
 
 @dataclass(frozen=True)
