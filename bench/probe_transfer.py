@@ -2,6 +2,7 @@
 
     python bench/probe_transfer.py --alt 300 --regions 8 --iters 2000
     python bench/probe_transfer.py --alt 100 --regions 30 --iters 2000
+    python bench/probe_transfer.py --alt 300 --regions 8 --iters 1000 --encoder corr
 
 A supervised upper bound for zero-shot transfer. The project's own view layers (the
 SmallCNN encoder, the current- and target-view embeddings and the FC layer of
@@ -16,6 +17,9 @@ that ignores the views (always the majority-good action).
 
 An RL learner sees far less supervision than this, so the scene-B figure bounds what
 meta-training on A can give a policy on B before fine-tuning (docs/learning.md §6).
+``--encoder corr`` puts the frozen correlation encoder (each view's normalised
+cross-correlation with the target view, ``NetConfig(encoder='corr')``) in front of the
+same embeddings and FC layer instead of the trainable CNN (docs/learning.md §7).
 """
 
 from __future__ import annotations
@@ -40,6 +44,7 @@ from geonav.camera import Camera  # noqa: E402
 from geonav.demo import ensure_scene  # noqa: E402
 from geonav.env import GeoNavEnv  # noqa: E402
 from geonav.policy.config import NetConfig  # noqa: E402
+from geonav.policy.encoders import build_frozen_encoder  # noqa: E402
 from geonav.policy.model import ActorCritic  # noqa: E402
 from geonav.scene import Scene  # noqa: E402
 from geonav.tasks import ACTION_MOVES, TaskSet, sample_meta_tasks  # noqa: E402
@@ -89,16 +94,23 @@ def pairs(tables: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]
 class ViewHead(nn.Module):
     """ActorCritic's view layers (encoder, embeddings, FC) and a 4-way action head."""
 
-    def __init__(self, seed: int) -> None:
+    def __init__(self, seed: int, encoder: str = "cnn", corr_radius: int = 8) -> None:
         super().__init__()
         torch.manual_seed(seed)
-        self.ac = ActorCritic(NetConfig(obs_size_px=PX))
+        cfg = NetConfig(obs_size_px=PX, encoder=encoder, corr_radius=corr_radius)
+        self.ac = ActorCritic(cfg)
+        self.frozen = build_frozen_encoder(cfg)
         self.head = nn.Linear(self.ac.cfg.hidden_size, 4)
 
     def forward(self, cur: torch.Tensor, tgt: torch.Tensor) -> torch.Tensor:
         ac = self.ac
-        o = F.relu(ac.obs_embed(ac.features(cur)))
-        t = F.relu(ac.target_embed(ac.features(tgt)))
+        if self.frozen is not None:  # pairwise: the view against its target, the target's own
+            mc, mt = self.frozen.encode(cur), self.frozen.encode(tgt)
+            fc, ft = self.frozen.combine(mc, mt), self.frozen.combine(mt, mt)
+        else:
+            fc, ft = ac.features(cur), ac.features(tgt)
+        o = F.relu(ac.obs_embed(fc))
+        t = F.relu(ac.target_embed(ft))
         a = F.relu(ac.action_embed(torch.zeros(len(cur), ac.cfg.n_actions)))
         return self.head(F.relu(ac.fc(torch.cat([o, t, a], 1))))
 
@@ -119,6 +131,9 @@ def main() -> None:
     ap.add_argument("--scene-size", type=float, default=1100.0)
     ap.add_argument("--iters", type=int, default=2000, help="Adam steps of 256 pairs")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--encoder", choices=("cnn", "corr"), default="cnn",
+                    help="the trainable SmallCNN (default) or the frozen correlation encoder")
+    ap.add_argument("--corr-radius", type=int, default=8, help="encoder corr: shifts compared")
     ap.add_argument("--cache", default=str(ROOT / "bench" / ".cache"))
     args = ap.parse_args()
     torch.set_num_threads(1)
@@ -138,7 +153,7 @@ def main() -> None:
     good = train[2]
     chance = {"random": float(good.mean()),
               "blind": float(good.mean(0).max())}
-    net = ViewHead(args.seed)
+    net = ViewHead(args.seed, args.encoder, args.corr_radius)
     opt = torch.optim.Adam(net.parameters(), 1e-3)
     rng = np.random.default_rng(args.seed)
     t0 = time.perf_counter()
@@ -162,7 +177,8 @@ def main() -> None:
             rows.append(row)
             print(json.dumps(row), flush=True)
     last = rows[-1]
-    print(f"\nalt {args.alt:g} m, {args.regions} training regions of A ({len(good)} pairs); "
+    print(f"\nencoder {args.encoder}, alt {args.alt:g} m, {args.regions} training regions "
+          f"of A ({len(good)} pairs); "
           f"fraction of view pairs whose action shortens the path:")
     print(f"  training pairs {last['train']:.3f} | held-out A regions {last['A_held_out']:.3f} "
           f"| scene B {last['B']:.3f} | chance: random {chance['random']:.3f}, "
