@@ -206,7 +206,7 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
     its ``lr`` and Adam settings are the in-task Adam's, ``max_grad_norm`` its clip)."""
 
     base_algo = "isar"
-    adapted_weights = True
+    per_slot_parameters = True
     cfg: Any
     """An ISARConfig (ISAR base) or an A3CConfig (A3C base)."""
 

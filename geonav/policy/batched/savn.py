@@ -17,9 +17,15 @@ lock-step, with the graph kept and h never detached:
   slots; its gradient w.r.t. phi and Lambda (Lambda through the second-order path only)
   takes one Adam step.
 
+* with ``bootstrap_on_truncation`` an episode cut by the step cap bootstraps its
+  meta-loss with V(s_T) under its last theta_s, detached, as the reference does.
+
 So each episode is exactly the reference worker's episode (``tests/test_batched_savn.py``
 compares B = 1), and a round's update is the mean of B episodes' meta-gradients. Waiting
-slots cost forward passes: a round lasts as long as its longest episode.
+slots cost forward passes: a round lasts as long as its longest episode. With the
+trainable CNN theta_s adapts the convolutions too (dense per-slot weight changes,
+:class:`~geonav.policy.batched.core.SlotDeltas`): each slot's current view is encoded once
+per step and its target once per segment under its own weights, with the graph.
 """
 
 from __future__ import annotations
@@ -33,7 +39,6 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from geonav.errors import ConfigError
 from geonav.policy.batched.core import Adapted, Recorder, factored_step, sample_actions
 from geonav.policy.batched.isar import gram_matrix, values_dtype
 from geonav.policy.batched.teacher import BatchedTeacher, kl_terms
@@ -49,7 +54,6 @@ class BatchedSAVNTrainer(BatchedTrainer):
 
     algorithm = "savn"
     config_key = "savn"
-    adapted_weights = True
     cfg: SAVNConfig
 
     def __init__(self, env_factory: Any, net_cfg: Any = None, cfg: SAVNConfig | None = None,
@@ -103,9 +107,11 @@ class BatchedSAVNTrainer(BatchedTrainer):
         inner = np.zeros(b, np.int64)
         logits, values, actions, rewards, ends, masks = [], [], [], [], [], []
         finals: list[dict[str, Any]] = []
-        assert self.table is not None
+        lc = cfg.loss
+        end_values = [] if lc.bootstrap_on_truncation else None
         t = 0
         rec = Recorder(gram=self.gram)
+        tgt_f: torch.Tensor | None = None  # the targets' features under the current theta
         hs: list[torch.Tensor] = []
         kls: list[torch.Tensor] = []
         # the curriculum teacher's lambda of each slot's episode (numbered in slot order)
@@ -115,14 +121,27 @@ class BatchedSAVNTrainer(BatchedTrainer):
             vi, ti = self.slot_indices()
             tlogp = self.teacher.step(vi, ti, torch.full((b,), t == 0, device=dev)) \
                 if self.teacher is not None else None
-            logit, value, state = factored_step(params, e, self.table[vi], self.table[ti],
-                                                state, adapted, rec, None, vi, ti,
+            if tgt_f is None:
+                tgt_f = self.slot_views(params, adapted, ti, rec)
+            logit, value, state = factored_step(params, e, self.slot_views(params, adapted, vi,
+                                                                           rec),
+                                                tgt_f, state, adapted, rec, None, vi, ti,
                                                 self.prev_features(vi))
             hs.append(state[0])
             if tlogp is not None and lam is not None:  # lambda KL(pi_T || pi_theta), (B,)
                 kls.append(kl_terms(tlogp[None].to(dtype), logit[None])[0] * lam)
             a = sample_actions(logit, self.rng).to(dev)
             res = venv.step(a.cpu().numpy(), autoreset=False)
+            if end_values is not None:  # V(s_T) under theta_s at a truncation, detached
+                end_values.append(np.zeros(b))
+                if (res.truncated & alive).any():
+                    with torch.no_grad():
+                        fv = torch.from_numpy(res.final_view).to(dev)
+                        _, v_end, _ = factored_step(params, e, self.slot_views(params, adapted,
+                                                                               fv),
+                                                    tgt_f, state, adapted, None, None, fv, ti,
+                                                    self.prev_features(fv))
+                    end_values[-1] = np.where(res.truncated & alive, v_end.cpu().numpy(), 0.0)
             logits.append(logit)
             values.append(value)
             actions.append(a)
@@ -149,15 +168,13 @@ class BatchedSAVNTrainer(BatchedTrainer):
                                                 create_graph=cfg.second_order, weights=w)
                     inner += can
                 rec = Recorder(gram=self.gram)
+                tgt_f = None
         mask = torch.stack(masks)
         ends_np = np.stack(ends)
         lg, vs, acts = torch.stack(logits), torch.stack(values), torch.stack(actions)
-        lc = cfg.loss
-        if lc.bootstrap_on_truncation:
-            raise ConfigError("bootstrap_on_truncation is implemented for SAVN on engine = "
-                              "'async' only")
         ret, adv = gae_returns(np.stack(rewards), vs.detach().to("cpu", torch.float64).numpy(),
-                               np.zeros(b), ends_np, lc.gamma, lc.tau)
+                               np.zeros(b), ends_np, lc.gamma, lc.tau,
+                               None if end_values is None else np.stack(end_values))
         terms = policy_value_terms(lg, vs, acts, torch.from_numpy(ret).to(dev, dtype),
                                    torch.from_numpy(adv).to(dev, dtype), lc, weights=mask)
         if kls:
