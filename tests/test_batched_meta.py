@@ -25,14 +25,18 @@ from geonav.policy.meta_config import ISARConfig, MetaConfig, SAVNConfig
 from geonav.policy.testing import tiny_env_factory, tiny_net
 
 
-def test_first_meta_update_equals_reference(tmp_path):
+@pytest.mark.parametrize("encoder", ["random", "cnn"])
+def test_first_meta_update_equals_reference(tmp_path, encoder):
+    """SAVN base (the trainable CNN adapted per slot in the inner steps, too)."""
     factory = tiny_env_factory(cells=5, max_steps=12)
-    net = tiny_net("random", 32, size=16)
+    net = tiny_net(encoder, 32, size=16)
     base = SAVNConfig(k_steps=3, inner_steps=2, inner_lr=0.5)
     meta = MetaConfig(episodes=1, workers=0, batch_tasks=1, meta_lr=0.1, seed=4)
     ref = MetaTrainer(factory, net, "savn", base, meta, tensorboard=False)
     ref.train()
-    bat = BatchedMetaSAVN(factory, net, base, meta, out_dir=tmp_path, tensorboard=False)
+    bat = build_meta_trainer("savn", "batched", factory, net, base, meta, out_dir=tmp_path,
+                             tensorboard=False)
+    assert isinstance(bat, BatchedMetaSAVN)
     res = bat.train()
     assert res.episodes == 1 and bat.meta_updates == 1
     for (n, a), b in zip(ref.model.named_parameters(), bat.model.parameters(), strict=True):

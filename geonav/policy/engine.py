@@ -43,6 +43,8 @@ def _fallback_reason(algo: str, net_cfg: Any, cfg: Any, teacher: bool, prev_view
                      ) -> str | None:
     if prev_view and algo not in ("isar", "savn"):
         return f"the previous-altitude view input is implemented for isar and savn, not {algo}"
+    if prev_view and (net_cfg is None or net_cfg.encoder == "cnn"):
+        return "the previous-altitude view input on the batched engine needs a frozen encoder"
     if algo in ("isar", "savn"):
         if cfg is not None and not getattr(cfg, "flush_partial_window", True):
             return "flush_partial_window = false is implemented on the async engine only"
