@@ -58,6 +58,19 @@ def test_learns_tiny_task():
     assert sr >= rnd + 0.3, (sr, rnd)
 
 
+@pytest.mark.slow
+def test_learns_tiny_task_with_the_trainable_cnn():
+    """The CNN trained end to end, adapted per slot in the inner steps."""
+    factory = tiny_env_factory(cells=4, max_steps=7)
+    env = factory()
+    cfg = ISARConfig(episodes=3000, lr=1e-3, alpha=1e-2, adam_eps=1e-5, amsgrad=False,
+                     second_order=False, seed=0, eval_every=0)
+    t = BatchedISARTrainer(factory, tiny_net("cnn", 32), cfg, batch=16, tensorboard=False)
+    res = t.train()
+    sr, rnd = greedy_sr(res.model, t.frozen, env), random_sr(env)
+    assert sr >= rnd + 0.3, (sr, rnd)
+
+
 def test_b1_first_window_with_kl_teacher_equals_reference(tmp_path):
     """The curriculum's KL prior (option A): teacher at another altitude of the lattice."""
     net = tiny_net("random", 32, size=16)

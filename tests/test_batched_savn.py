@@ -46,6 +46,19 @@ def test_learns_tiny_task():
     assert sr >= rnd + 0.3, (sr, rnd)
 
 
+@pytest.mark.slow
+def test_learns_tiny_task_with_the_trainable_cnn():
+    """The CNN trained end to end, adapted per slot in the inner steps."""
+    factory = tiny_env_factory(cells=4, max_steps=7)
+    env = factory()
+    cfg = SAVNConfig(episodes=3000, lr=1e-3, adam_eps=1e-5, amsgrad=False, seed=0,
+                     eval_every=0)
+    t = BatchedSAVNTrainer(factory, tiny_net("cnn", 32), cfg, batch=16, tensorboard=False)
+    res = t.train()
+    sr, rnd = greedy_sr(res.model, t.frozen, env), random_sr(env)
+    assert sr >= rnd + 0.3, (sr, rnd)
+
+
 def test_b1_with_kl_teacher_equals_reference(tmp_path):
     """The curriculum's KL prior in the learned loss and the meta-loss (option A)."""
     net = tiny_net("random", 32, size=16)
