@@ -115,7 +115,8 @@ def build_meta_trainer(algo: str, engine: str, env_factory: Any, net_cfg: Any, b
                        meta_cfg: Any, *, batch: int | None = None, device: str | None = None,
                        **kwargs: Any) -> Any:
     """Meta-training on the batched engine where it is implemented (SAVN, ISAR and A3C
-    bases, E = 1; a frozen encoder for ISAR and A3C: :mod:`geonav.policy.batched.meta`), else
+    bases; E = 1 for SAVN, a frozen encoder for ISAR and A3C:
+    :mod:`geonav.policy.batched.meta`), else
     :class:`~geonav.policy.meta.MetaTrainer` (async, with a warning when the batched engine
     was asked for). ``batch`` is unused: B is the meta-batch."""
     if engine not in ENGINES:
@@ -132,8 +133,9 @@ def build_meta_trainer(algo: str, engine: str, env_factory: Any, net_cfg: Any, b
         if reason is None and algo != "savn" and (net_cfg is None or net_cfg.encoder == "cnn"):
             reason = (f"batched meta-training with the {algo.upper()} base needs a frozen "
                       "encoder (per-task copies of the trainable CNN are not implemented)")
-        if reason is None and meta_cfg.episodes_per_task != 1:
-            reason = "batched meta-training runs E = 1 episode per task visit"
+        if reason is None and meta_cfg.episodes_per_task != 1 and algo == "savn":
+            reason = ("batched meta-training with the SAVN base runs E = 1 episode per task "
+                      "visit (its slots share psi)")
         if reason is None:
             from geonav.policy.batched.meta import BATCHED_META
 

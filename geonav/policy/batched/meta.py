@@ -145,7 +145,7 @@ class MetaRun:
         """The next B tasks (``visits``: the task visits the round ran; default B)."""
         self._visits += self.batch if visits is None else visits  # type: ignore
         self.venv.slot_tasks = self.batch_tasks(self._visits)  # type: ignore[attr-defined]
-        self.venv.reset()  # type: ignore[attr-defined]
+        self.reset_venv()  # type: ignore[attr-defined]
 
     def after_update(self, before: int, cbs: list[Callback]) -> None:
         checkpoint_after_update(self, before, cbs, self.rng_snapshot)  # type: ignore
@@ -276,6 +276,18 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
     def schedule(self) -> tuple[int, int]:
         """(steps per segment N, segments per window K)."""
         return self.cfg.n_steps, self.cfg.k_segments
+
+    def reset_venv(self) -> None:
+        """The round's first episodes. With E > 1 the starts of every episode of the
+        visits are drawn here, visit by visit (a task's E episodes in turn, the
+        reference's order of draws), and :meth:`update` resets to them."""
+        e, venv = self.meta_cfg.episodes_per_task, self.venv
+        if e == 1:
+            venv.reset()
+            return
+        self._starts = np.array([[venv.draw_start(int(t)) for _ in range(e)]
+                                 for t in venv.slot_tasks])                     # (B, E, 2)
+        venv.reset(starts=self._starts[:, 0])
 
     def resolved_config(self) -> dict[str, Any]:
         d = super().resolved_config()
@@ -424,7 +436,7 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
         live_segments = 0
         for e in range(int(jobs.max())):
             if e:  # the slots' next episodes on the same tasks
-                self.venv.reset()
+                self.venv.reset(starts=self._starts[:, e])
                 self.t_episode[:] = time.perf_counter()
             fin, segs = self.episode(phi, opt, task_grads, jobs > e, sums)
             for f in fin:

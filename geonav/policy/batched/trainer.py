@@ -204,7 +204,7 @@ class BatchedTrainer(A3CTrainer):
             torch.set_rng_state(st["torch"])
             self.rng.bit_generator.state = st["numpy"]
             self.venv.np_random.bit_generator.state = st["env"]
-        self.venv.reset()
+        self.reset_venv()
         dtype = next(self.model.parameters()).dtype
         self.prev_table = None
         if self.prev_view_spec is not None:
@@ -229,6 +229,10 @@ class BatchedTrainer(A3CTrainer):
         """The number of each slot's current episode in start order (schedules by episode,
         such as the curriculum teacher's lambda, read it)."""
         self.next_episode = self.start_episode + 1 + b
+
+    def reset_venv(self) -> None:
+        """A new episode in every slot (meta-training draws its task visits' starts)."""
+        self.venv.reset()
 
     def rng_snapshot(self) -> dict[str, Any]:
         return {"engine": "batched", "torch": torch.get_rng_state(),
