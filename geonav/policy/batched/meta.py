@@ -1,8 +1,8 @@
-"""Meta-training (Eq. 1, ALGORITHMS.md (d)) on the batched engine, E = 1, frozen encoder.
+"""Meta-training (Eq. 1, ALGORITHMS.md (d)) on the batched engine.
 
-A meta-iteration takes the next B meta-tasks in cyclic order and runs one episode of the
-base algorithm on each, all B at once: slot j of the round is pinned to task j of the
-batch and starts from psi. Task i's gradient g_i is what the reference
+A meta-iteration takes the next B meta-tasks in cyclic order and runs E episodes of the
+base algorithm on each (``episodes_per_task``; E = 1 with the SAVN base), all B at once:
+slot j of the round is pinned to task j of the batch and starts from psi. Task i's gradient g_i is what the reference
 (:class:`~geonav.policy.meta.MetaTrainer` and its ``TaskRunner``) defines; then
 psi <- psi - eta sum_i g_i (:func:`~geonav.policy.meta.meta_step`: SGD, or Adam as
 ``meta_optimizer``; ``meta_max_grad_norm`` clips the sum). Checkpoints are written after
@@ -13,19 +13,23 @@ so a resume starts at a batch boundary and goes on with the cyclic order.
   :class:`~geonav.policy.batched.savn.BatchedSAVNTrainer`'s episode-synchronous round):
   g_i is the episode's exact meta-gradient w.r.t. its initial parameters (= psi, and
   Lambda). With E = 1 the reference's in-task Adam never changes a task gradient (its
-  step follows the only episode and is discarded).
+  step follows the only episode and is discarded). The trainable CNN adapts per slot as
+  in single-task SAVN. E > 1 would need per-task copies of psi: the async engine runs it.
 * **ISAR base** (:class:`BatchedMetaISAR`): each slot carries its own copy of the
   parameters, phi^i, stacked along a leading dim (B, ...) (per-slot weights of every
   linear map, :func:`~geonav.policy.batched.core.linear`), and its own fresh in-task
-  Adam state (one Adam over the stacked tensors: Adam is elementwise and every live
-  slot steps at the same windows, so slot j's moments and step count are exactly a
-  per-task Adam's). On top of phi^i the interaction policy theta is the exact factored
+  Adam state (:class:`SlotAdam` over the stacked tensors: Adam is elementwise, and a
+  step count per slot with only the live slots stepping makes slot j's moments and bias
+  corrections exactly a per-task Adam's). With E > 1 the visit's episodes run one after
+  another, each from h = 0 on the phi^i and Adam the previous one left (the rounds of
+  all slots in lock-step; the starts of a visit's episodes are drawn together, in the
+  reference's order). On top of phi^i the interaction policy theta is the exact factored
   per-slot inner update of :mod:`geonav.policy.batched.isar` (N-step segments, inner SGD
   at the first K - 1 segment ends, create_graph = ``second_order``); at each window end
   (K segments, or the episode end) grad_phi^i of the window's summed L_adapt is added,
   unclipped, to g_i, clipped per slot to ``max_grad_norm`` and stepped by the slot's
   Adam; theta <- phi^i, h detached. g_i = sum over windows of those gradients (first
-  order in psi: d phi^i / d psi is taken as I).
+  order in psi: d phi^i / d psi is taken as I). Needs a frozen encoder.
 * **A3C base** (:class:`BatchedMetaA3C`): the same with windows of one segment of
   ``t_max`` steps and no inner step: one per-task Adam step per rollout, g_i the sum of
   the rollout gradients (ISAR with K = 1 is the A3C worker's update exactly).
@@ -44,7 +48,7 @@ global clock as each reference episode's own; a slot whose episode ends waits (i
 steps are masked out, its partial window is flushed at the window end, where its phi^i
 has not changed since, so this is the reference's flush at done) until every slot has
 finished. ``tests/test_batched_meta.py`` checks the meta update of B = 1 and B = 3 tasks
-against the reference's in float64 on forced trajectories.
+(E = 1 and 2) against the reference's in float64 on forced trajectories.
 """
 
 from __future__ import annotations
