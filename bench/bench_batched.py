@@ -13,8 +13,8 @@ warm-up:
 
 The ``isar2-cnn`` and ``savn-cnn`` rows train the CNN, adapted per slot in the inner
 steps (:class:`~geonav.policy.batched.core.SlotDeltas`). Rows the batched engine does not
-implement yet (packed runs other than A3C, PPO and ISAR, and packed runs of the trainable
-CNN) print ``n/a``; ``packed 4x16`` is 4 independent runs of 16 slots each in one
+implement yet (packed meta-training and curriculum rows, packed runs of the trainable CNN)
+print ``n/a``; ``packed 4x16`` is 4 independent runs of 16 slots each in one
 process batch (:mod:`geonav.policy.batched.packed`, each run its own parameters, Adam and
 per-run batch of 16), to read beside ``B=16`` (one such run) and ``B=64`` (one run of
 the same process batch). In the meta-training rows (ISAR base
@@ -157,13 +157,13 @@ def run_batched(kind: str, batch: int, seconds: float) -> tuple[float, float] | 
 
 
 def run_packed(kind: str, runs: int, batch: int, seconds: float) -> tuple[float, float] | None:
-    """Steps/s of ``runs`` packed runs of ``batch`` slots each (A3C, PPO, ISAR)."""
+    """Steps/s of ``runs`` packed runs of ``batch`` slots each (A3C, PPO, ISAR, SAVN)."""
     from geonav.policy.batched.packed import pack, packing_refusal
     from geonav.policy.batched.ppo import PPOConfig
     from geonav.policy.engine import resolve
 
     algo, net, cfg, ms = configs(kind)
-    if algo not in ("a3c", "ppo", "isar"):
+    if algo not in ("a3c", "ppo", "isar", "savn"):
         return None
     if algo == "ppo":
         cfg = PPOConfig(episodes=10**7, seed=0, checkpoint_every=0, eval_every=0)

@@ -515,13 +515,23 @@ class ActingTables:
         return self._obs[view_idx] + self._tgt[target_idx]
 
 
-def sample_actions(logits: torch.Tensor, rng: object) -> torch.Tensor:
+def sample_actions(logits: torch.Tensor, rng: object, live: Any = None) -> torch.Tensor:
     """A draw per row from softmax(logits) (B, A) with a numpy Generator, by the rule of
-    :func:`geonav.policy.agent.choose_action` (so B = 1 draws equal the reference's)."""
+    :func:`geonav.policy.agent.choose_action` (so B = 1 draws equal the reference's).
+
+    ``live`` (B,) bool: draw for those rows only (the others get action 0), so a run's
+    stream does not depend on how long masked rows keep stepping (SAVN's rounds, packed:
+    ``rng`` then draws each run's live rows from its own generator)."""
     import numpy as np
 
     probs = torch.softmax(logits.detach(), dim=-1).to("cpu", torch.float64).numpy()
     cdf = np.cumsum(probs, axis=1)
-    x = rng.random(probs.shape[0]) * cdf[:, -1]  # type: ignore[attr-defined]
+    if live is None:
+        u = rng.random(probs.shape[0])  # type: ignore[attr-defined]
+    else:
+        u = np.zeros(probs.shape[0])
+        u[live] = rng.random_live(live) if hasattr(rng, "random_live") \
+            else rng.random(int(live.sum()))  # type: ignore[attr-defined]
+    x = u * cdf[:, -1]
     a = (cdf <= x[:, None]).sum(1)
     return torch.from_numpy(np.minimum(a, probs.shape[1] - 1))

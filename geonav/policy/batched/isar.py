@@ -151,10 +151,7 @@ class BatchedISARTrainer(BatchedTrainer):
                                          state, adapted, None, self.fresh, vi, ti,
                                          self.prev_features(vi))
         lg = torch.stack(logits)
-        slices = self.run_slices()  # one run; one per run when packed (run masks)
-        masks: list[torch.Tensor | None] = [None] if len(slices) == 1 else [
-            torch.zeros_like(current).index_fill_(1, torch.arange(b, device=dev)[s], 1.0)
-            for s in slices]
+        masks = self.run_masks(current)  # one run; one per run when packed
         *runs, mine = segment_terms(lg, torch.stack(values), torch.stack(actions), rewards,
                                     ends, v_next, cfg.loss, end_values, [*masks, current])
         total = torch.stack([r.total for r in runs]).sum()

@@ -2,8 +2,9 @@
 
 A meta-iteration takes the next B meta-tasks in cyclic order and runs E episodes of the
 base algorithm on each (``episodes_per_task``; E = 1 with the SAVN base), all B at once:
-slot j of the round is pinned to task j of the batch and starts from psi. Task i's gradient g_i is what the reference
-(:class:`~geonav.policy.meta.MetaTrainer` and its ``TaskRunner``) defines; then
+slot j of the round is pinned to task j of the batch and starts from psi. Task i's
+gradient g_i is what the reference (:class:`~geonav.policy.meta.MetaTrainer` and its
+``TaskRunner``) defines; then
 psi <- psi - eta sum_i g_i (:func:`~geonav.policy.meta.meta_step`: SGD, or Adam as
 ``meta_optimizer``; ``meta_max_grad_norm`` clips the sum). Checkpoints are written after
 the meta update that reaches every ``checkpoint_every`` episodes, as the reference does,

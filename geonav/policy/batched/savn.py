@@ -31,7 +31,6 @@ per step and its target once per segment under its own weights, with the graph.
 from __future__ import annotations
 
 import time
-from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -91,9 +90,17 @@ class BatchedSAVNTrainer(BatchedTrainer):
 
     def interaction_loss(self, rows: torch.Tensor) -> torch.Tensor:
         """(B, k, H + A) -> (B,) learned losses, the aux module applied per slot."""
-        tcn = self.aux["interaction_loss"]
-        lam: dict[str, torch.Tensor] = dict(tcn.named_parameters())
-        return torch.func.vmap(lambda r: torch.func.functional_call(tcn, lam, (r,)))(rows)
+        tcn = self.aux_module()
+        lam, dim = self.loss_params()
+        return torch.func.vmap(lambda p, r: torch.func.functional_call(tcn, p, (r,)),
+                               in_dims=(dim, 0))(lam, rows)
+
+    def aux_module(self) -> nn.Module:
+        return self.aux["interaction_loss"]
+
+    def loss_params(self) -> tuple[dict[str, torch.Tensor], int | None]:
+        """Lambda, shared by the slots (vmap in_dims None); packed runs: per slot, dim 0."""
+        return dict(self.aux_module().named_parameters()), None
 
     def update(self) -> tuple[list[dict[str, Any]], dict[str, float]]:
         cfg, e, dev, b = self.cfg, self.net_cfg.embed_dim, self.device, self.batch
@@ -130,7 +137,7 @@ class BatchedSAVNTrainer(BatchedTrainer):
             hs.append(state[0])
             if tlogp is not None and lam is not None:  # lambda KL(pi_T || pi_theta), (B,)
                 kls.append(kl_terms(tlogp[None].to(dtype), logit[None])[0] * lam)
-            a = sample_actions(logit, self.rng).to(dev)
+            a = sample_actions(logit, self.rng, alive).to(dev)  # draws for live slots only
             res = venv.step(a.cpu().numpy(), autoreset=False)
             if end_values is not None:  # V(s_T) under theta_s at a truncation, detached
                 end_values.append(np.zeros(b))
@@ -175,20 +182,24 @@ class BatchedSAVNTrainer(BatchedTrainer):
         ret, adv = gae_returns(np.stack(rewards), vs.detach().to("cpu", torch.float64).numpy(),
                                np.zeros(b), ends_np, lc.gamma, lc.tau,
                                None if end_values is None else np.stack(end_values))
-        terms = policy_value_terms(lg, vs, acts, torch.from_numpy(ret).to(dev, dtype),
-                                   torch.from_numpy(adv).to(dev, dtype), lc, weights=mask)
+        ret_t, adv_t = torch.from_numpy(ret).to(dev, dtype), torch.from_numpy(adv).to(dev, dtype)
+        weights = [mask if m is None else mask * m for m in self.run_masks(mask)]
+        runs = [policy_value_terms(lg, vs, acts, ret_t, adv_t, lc, weights=w)
+                for w in weights]  # one run; one per run when packed
+        total = torch.stack([r.total for r in runs]).sum()
         if kls:
-            terms = replace(terms, total=terms.total + (torch.stack(kls) * mask).sum())
-        bf = float(b)
-        self.step_optimizer(terms.total / bf)
+            total = total + (torch.stack(kls) * mask).sum()
+        bf = float(self.run_batch)
+        self.step_optimizer(total / bf)
         self.fresh = torch.ones(b, dtype=torch.bool, device=dev)
         for f in finals:
             f["t0"] = float(self.t_episode[f["slot"]])
         self.next_round()
         self.t_episode[:] = time.perf_counter()
-        out = LossTerms(terms.total / bf, terms.policy / bf, terms.value / bf,
-                        terms.entropy / bf)
-        return finals, loss_stats(out, int(mask.sum()) // b)
+        stats = [loss_stats(LossTerms(r.total / bf, r.policy / bf, r.value / bf,
+                                      r.entropy / bf), int(w.sum()) // self.run_batch)
+                 for r, w in zip(runs, weights, strict=True)]
+        return finals, stats[0] if len(stats) == 1 else stats
 
 
 __all__ = ["BatchedSAVNTrainer"]

@@ -291,6 +291,15 @@ class BatchedTrainer(A3CTrainer):
         """The slot columns of each run: one run here, R in a packed driver."""
         return [slice(None)]
 
+    def run_masks(self, like: torch.Tensor) -> list[torch.Tensor | None]:
+        """Per-run step weights shaped like ``like`` (T, B): [None] for one run; one 0/1
+        mask of each run's slot columns when packed (per-run losses and figures)."""
+        slices = self.run_slices()
+        if len(slices) == 1:
+            return [None]
+        cols = torch.arange(like.shape[1], device=like.device)
+        return [torch.zeros_like(like).index_fill_(1, cols[s], 1.0) for s in slices]
+
     def run_rngs(self) -> list[np.random.Generator]:
         """The random streams of the runs, in slot order (one here; one per packed run)."""
         return [self.rng]
