@@ -11,8 +11,10 @@ warm-up:
 * ``batched B``: the batched engine with B slots (B = 1, 16, 64, 256);
 * ``ratio``: batched per CPU-second / async per CPU-second.
 
-Rows the batched engine does not implement yet (packed runs other than A3C, PPO and
-ISAR) print ``n/a``; ``packed 4x16`` is 4 independent runs of 16 slots each in one
+The ``isar2-cnn`` and ``savn-cnn`` rows train the CNN, adapted per slot in the inner
+steps (:class:`~geonav.policy.batched.core.SlotDeltas`). Rows the batched engine does not
+implement yet (packed meta-training and curriculum rows, packed runs of the trainable CNN)
+print ``n/a``; ``packed 4x16`` is 4 independent runs of 16 slots each in one
 process batch (:mod:`geonav.policy.batched.packed`, each run its own parameters, Adam and
 per-run batch of 16), to read beside ``B=16`` (one such run) and ``B=64`` (one run of
 the same process batch). In the meta-training rows (ISAR base
@@ -94,6 +96,9 @@ def configs(kind: str):
         "isar2": ("isar", frozen, ISARConfig(**common, second_order=True), 70),
         "isar1": ("isar", frozen, ISARConfig(**common, second_order=False), 70),
         "savn": ("savn", frozen, SAVNConfig(**common), 70),
+        "isar2-cnn": ("isar", replace(frozen, encoder="cnn"),
+                      ISARConfig(**common, second_order=True), 70),
+        "savn-cnn": ("savn", replace(frozen, encoder="cnn"), SAVNConfig(**common), 70),
         "curriculum-stage": ("isar", frozen, ISARConfig(**common), 120),
         "meta-isar2": ("meta-isar", frozen, ISARConfig(**common, second_order=True), 70),
         "meta-isar1": ("meta-isar", frozen, ISARConfig(**common, second_order=False), 70),
@@ -152,13 +157,13 @@ def run_batched(kind: str, batch: int, seconds: float) -> tuple[float, float] | 
 
 
 def run_packed(kind: str, runs: int, batch: int, seconds: float) -> tuple[float, float] | None:
-    """Steps/s of ``runs`` packed runs of ``batch`` slots each (A3C, PPO, ISAR)."""
+    """Steps/s of ``runs`` packed runs of ``batch`` slots each (A3C, PPO, ISAR, SAVN)."""
     from geonav.policy.batched.packed import pack, packing_refusal
     from geonav.policy.batched.ppo import PPOConfig
     from geonav.policy.engine import resolve
 
     algo, net, cfg, ms = configs(kind)
-    if algo not in ("a3c", "ppo", "isar"):
+    if algo not in ("a3c", "ppo", "isar", "savn"):
         return None
     if algo == "ppo":
         cfg = PPOConfig(episodes=10**7, seed=0, checkpoint_every=0, eval_every=0)
@@ -207,7 +212,8 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
     kinds = args.only.split(",") if args.only else ["a3c", "a3c-cnn", "ppo", "isar2", "isar1",
-                                                      "savn", "meta-isar2", "meta-isar1",
+                                                      "savn", "isar2-cnn", "savn-cnn",
+                                                      "meta-isar2", "meta-isar1",
                                                       "meta-a3c", "meta-savn",
                                                       "curriculum-stage"]
     batches = [int(b) for b in args.batches.split(",")]

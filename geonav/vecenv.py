@@ -248,6 +248,11 @@ class LatticeVecEnv:
             return self._cycle
         return int(self.np_random.integers(self.n_tasks))
 
+    def draw_start(self, task: int) -> np.ndarray:
+        """A start cell of task ``task`` (GeoNavEnv's start distribution), one draw."""
+        cands = self._starts[task]
+        return cands[int(self.np_random.integers(len(cands)))]
+
     def reset_slots(self, slots: Any, tasks: Any = None, starts: Any = None,
                     variants: Any = None) -> None:
         """New episodes in ``slots`` (in order): task drawn (or forced), then the start,
@@ -257,8 +262,7 @@ class LatticeVecEnv:
             if not 0 <= ti < self.n_tasks:
                 raise TaskError(f"task index {ti} out of range 0..{self.n_tasks - 1}")
             if starts is None:
-                cands = self._starts[ti]
-                start = cands[int(self.np_random.integers(len(cands)))]
+                start = self.draw_start(ti)
             else:
                 start = np.asarray(starts[j], np.int64)
                 if not (0 <= start[0] < self.nx[ti] and 0 <= start[1] < self.ny[ti]) \

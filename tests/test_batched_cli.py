@@ -64,14 +64,28 @@ def test_async_engine_and_refusals(scene_files, tmp_path):
             _run(_base(scene_files, tmp_path / "c", "a3c") + ["--device", "cuda"])
 
 
-def test_isar_with_the_trainable_cnn_falls_back_to_async(scene_files, tmp_path):
-    run = tmp_path / "cnn"
-    argv = _base(scene_files, run, "isar")
+@pytest.mark.parametrize("algo", ["isar", "savn"])
+def test_isar_and_savn_with_the_trainable_cnn_run_batched(scene_files, tmp_path, algo):
+    run = tmp_path / algo
+    argv = _base(scene_files, run, algo)
     argv[argv.index("--encoder") + 1] = "cnn"
-    assert _run(argv + ["--workers", "0"]) == 0
+    assert _run(argv) == 0
     config = json.loads((run / "config.json").read_text())
-    assert config["engine"]["name"] == "async" and "frozen encoder" in \
-        config["engine"]["fallback_reason"]
+    assert config["engine"]["name"] == "batched" and config["engine"]["batch"] == 4
+    assert len((run / "metrics.csv").read_text().splitlines()) == 1 + 6
+
+
+def test_meta_isar_with_the_trainable_cnn_falls_back_to_async():
+    """Per-task copies of the trainable CNN (meta-training's ISAR and A3C bases) are not
+    implemented on the batched engine: async, with the reason."""
+    from geonav.policy.engine import build_meta_trainer
+    from geonav.policy.meta_config import ISARConfig, MetaConfig
+    from geonav.policy.testing import tiny_env_factory, tiny_net
+
+    t = build_meta_trainer("isar", "batched", tiny_env_factory(), tiny_net("cnn"),
+                           ISARConfig(), MetaConfig(episodes=1, workers=0),
+                           tensorboard=False)
+    assert t.engine_choice.engine == "async" and "frozen encoder" in t.engine_choice.reason
 
 
 def test_resume_from_an_earlier_checkpoint_drops_the_later_rows(scene_files, tmp_path):

@@ -11,8 +11,11 @@ import pytest
 import torch
 
 from geonav.policy.batched.core import (
+    ENCODER,
     LAYERS,
     Recorder,
+    encode_slots,
+    encoder_weights,
     factored_forward,
     factored_step,
     sequence_forward,
@@ -38,6 +41,38 @@ def setup():
     g = torch.Generator().manual_seed(1)
     table = torch.rand(12, model.obs_embed.in_features, generator=g, dtype=torch.float64)
     return model, table
+
+
+@pytest.fixture(scope="module")
+def cnn_setup():
+    """The trainable CNN inside the network; the 'table' holds uint8 views (the CNN
+    adapts per slot in the inner steps)."""
+    torch.manual_seed(2)
+    model = ActorCritic(tiny_net("cnn", 32, size=16)).double()
+    with torch.no_grad():  # features of order 1: the gradients' float64 rounding ~1e-12
+        for p in model.encoder.parameters():
+            p.mul_(0.3)
+        model.actor.weight.mul_(50.0)
+        model.actor.bias.normal_()
+        model.critic.bias.normal_()
+    g = torch.Generator().manual_seed(3)
+    images = torch.randint(0, 256, (12, 32, 32, 3), generator=g, dtype=torch.uint8)
+    return model, images
+
+
+def _nets(request, kind):
+    return request.getfixturevalue("cnn_setup" if kind == "cnn" else "setup")
+
+
+def _feats(model, params, adapted, table, rows, rec=None):
+    """(B, F) features of one view per slot under the slots' adapted weights: the frozen
+    table's rows, or each slot's view encoded by the CNN with its own weights."""
+    if model.encoder is None:
+        return table[rows]
+    w = encoder_weights(params, adapted, rows.shape[0])
+    if rec is not None:
+        rec.add_encoder(w)
+    return encode_slots(model.encoder, w, table[rows].unsqueeze(1))[:, 0]
 
 
 def _state(model, b, g):
@@ -89,6 +124,43 @@ def test_sequence_forward_equals_module(setup, b):
     model.zero_grad(set_to_none=True)
 
 
+@pytest.mark.parametrize("b", [1, 5])
+def test_cnn_forward_with_per_slot_weights_equals_module(cnn_setup, b):
+    """The trainable CNN under per-slot weights theta_s = phi + delta_s (the encoder's
+    SlotDeltas and the linear layers' factors) equals functional_call with theta_s."""
+    from geonav.policy.batched.core import Factors, SlotDeltas
+
+    model, images = cnn_setup
+    g = torch.Generator().manual_seed(b)
+    phi = dict(model.named_parameters())
+    delta = {n[len("encoder."):]: 0.05 * torch.randn(b, *p.shape, generator=g,
+                                                     dtype=torch.float64)
+             for n, p in phi.items() if n.startswith("encoder.")}
+    fc_u = torch.randn(b, 2, model.fc.out_features, generator=g, dtype=torch.float64)
+    fc_v = torch.randn(b, 2, model.fc.in_features, generator=g, dtype=torch.float64)
+    adapted = {ENCODER: SlotDeltas(delta), "fc": Factors().add(fc_u, fc_v, 0.1)}
+    T = 4
+    views = torch.randint(0, 12, (T, b), generator=g)
+    targets = torch.randint(0, 12, (b,), generator=g)
+    state = _state(model, b, g)
+    st = state
+    tgt_f = _feats(model, phi, adapted, images, targets)
+    logits = []
+    for t in range(T):
+        lg, _, st = factored_step(phi, model.cfg.embed_dim,
+                                  _feats(model, phi, adapted, images, views[t]), tgt_f, st,
+                                  adapted)
+        logits.append(lg)
+    dw, db = adapted["fc"].dense()
+    for s in range(b):
+        theta = dict(phi)
+        theta.update({f"encoder.{n}": phi[f"encoder.{n}"] + d[s] for n, d in delta.items()})
+        theta["fc.weight"], theta["fc.bias"] = phi["fc.weight"] + dw[s], phi["fc.bias"] + db[s]
+        lg, _, _ = _ref_slot(model, theta, images, views[:, s], targets[s],
+                             (state[0][s:s + 1], state[1][s:s + 1], state[2][s:s + 1]))
+        torch.testing.assert_close(torch.stack(logits)[:, s], lg, atol=TOL, rtol=TOL)
+
+
 def _window_data(model, table, b, n_steps, k_segs, seed):
     g = torch.Generator().manual_seed(seed)
     T = n_steps * k_segs
@@ -114,22 +186,24 @@ def _batched_window(model, table, data, n_steps, k_segs, alpha, second_order, re
     params = dict(model.named_parameters())
     adapted = {}
     total = 0.0
-    tgt_f = table[targets].unsqueeze(0)
     g = table @ table.T if gram else None
     for k in range(k_segs):
         sl = slice(k * n_steps, (k + 1) * n_steps)
         rec = Recorder(gram=g)
+        tgt_f = _feats(model, params, adapted, table, targets, rec)  # once per theta
         logits, values = [], []
         for t in range(sl.start, sl.stop):
-            lg, v, state = factored_step(params, model.cfg.embed_dim, table[views[t]],
-                                         tgt_f[0], state, adapted, rec, None,
+            lg, v, state = factored_step(params, model.cfg.embed_dim,
+                                         _feats(model, params, adapted, table, views[t], rec),
+                                         tgt_f, state, adapted, rec, None,
                                          views[t] if gram else None, targets if gram else None)
             logits.append(lg)
             values.append(v)
         logits, values = torch.stack(logits), torch.stack(values)
         nxt = views[sl.stop % views.shape[0]]
         with torch.no_grad():  # bootstrap V(s_next) without advancing the state
-            _, v_next, _ = factored_step(params, model.cfg.embed_dim, table[nxt], tgt_f[0],
+            _, v_next, _ = factored_step(params, model.cfg.embed_dim,
+                                         _feats(model, params, adapted, table, nxt), tgt_f,
                                          state, adapted, None, None, nxt if gram else None,
                                          targets if gram else None)
             v_next = v_next[None]
@@ -167,10 +241,13 @@ def _ref_window(model, table, data, n_steps, k_segs, alpha, second_order):
     return total, thetas
 
 
-@pytest.mark.parametrize("b,gram", [(1, False), (5, False), (5, True)])
-def test_inner_updates_equal_functional_call(setup, b, gram):
-    """Per-slot adapted weights after each inner step equal theta - alpha grad (dense)."""
-    model, table = setup
+@pytest.mark.parametrize("b,gram,kind", [(1, False, "random"), (5, False, "random"),
+                                         (5, True, "random"), (1, False, "cnn"),
+                                         (5, False, "cnn")])
+def test_inner_updates_equal_functional_call(request, b, gram, kind):
+    """Per-slot adapted weights after each inner step equal theta - alpha grad (dense),
+    the trainable CNN's included."""
+    model, table = _nets(request, kind)
     alpha = 0.3  # large, so that an error in the factors shows
     data = _window_data(model, table, b, 3, 3, seed=10 + b)
     adapted_log = []
@@ -185,15 +262,25 @@ def test_inner_updates_equal_functional_call(setup, b, gram):
             for s in range(b):
                 torch.testing.assert_close(phi[wn] + dw[s], thetas[s][k][wn], atol=TOL, rtol=TOL)
                 torch.testing.assert_close(phi[bn] + db[s], thetas[s][k][bn], atol=TOL, rtol=TOL)
+        enc = [n for n in phi if n.startswith("encoder.")]
+        assert (ENCODER in adapted) == bool(enc)
+        for n in enc:
+            delta = adapted[ENCODER].delta[n[len("encoder."):]]
+            for s in range(b):
+                torch.testing.assert_close(phi[n] + delta[s], thetas[s][k][n], atol=TOL,
+                                           rtol=TOL)
+                assert float((thetas[s][k][n] - phi[n]).detach().abs().max()) > 1e-8  # adapts
 
 
-@pytest.mark.parametrize("b,second_order,gram", [(1, True, False), (5, True, False),
-                                                 (5, False, False), (5, True, True),
-                                                 (5, False, True)])
-def test_window_gradient_equals_functional_call(setup, b, second_order, gram):
+@pytest.mark.parametrize("b,second_order,gram,kind", [
+    (1, True, False, "random"), (5, True, False, "random"), (5, False, False, "random"),
+    (5, True, True, "random"), (5, False, True, "random"), (1, True, False, "cnn"),
+    (5, True, False, "cnn"), (5, False, False, "cnn")])
+def test_window_gradient_equals_functional_call(request, b, second_order, gram, kind):
     """ISAR's window gradient w.r.t. phi (second and first order), summed over slots; the
-    view embeddings' factors dense or as table rows with the Gram matrix."""
-    model, table = setup
+    view embeddings' factors dense or as table rows with the Gram matrix; the trainable
+    CNN adapted per slot."""
+    model, table = _nets(request, kind)
     data = _window_data(model, table, b, 2, 3, seed=20 + b)
     phi = list(model.parameters())
     got = torch.autograd.grad(_batched_window(model, table, data, 2, 3, 0.3, second_order,
@@ -229,16 +316,17 @@ def test_masked_gae_equals_per_episode_segments():
             np.testing.assert_allclose(adv[t0:t1, s], a1[:, 0], atol=1e-12)
 
 
-@pytest.mark.parametrize("b", [1, 5])
-def test_savn_episode_meta_gradient_equals_functional_call(setup, b):
+@pytest.mark.parametrize("b,kind", [(1, "random"), (5, "random"), (1, "cnn"), (5, "cnn")])
+def test_savn_episode_meta_gradient_equals_functional_call(request, b, kind):
     """SAVN: inner steps on the learned loss (TCN over [h, pi]), meta-loss L_AC over the
-    episode; gradient w.r.t. phi and Lambda, slots on different targets and states."""
+    episode; gradient w.r.t. phi and Lambda, slots on different targets and states; the
+    trainable CNN adapted per slot."""
     from torch.nn import functional as F
 
     from geonav.policy.functional import segment_forward
     from geonav.policy.savn import InteractionLoss
 
-    model, table = setup
+    model, table = _nets(request, kind)
     torch.manual_seed(7)
     tcn = InteractionLoss(3, 4).double()
     k, segs, alpha = 3, 3, 0.3
@@ -251,9 +339,12 @@ def test_savn_episode_meta_gradient_equals_functional_call(setup, b):
     for s_ in range(segs):
         sl = slice(s_ * k, (s_ + 1) * k)
         rec, hs, lgs = Recorder(), [], []
+        tgt_f = _feats(model, params, adapted, table, targets, rec)
         for t in range(sl.start, sl.stop):
-            lg, v, st = factored_forward(params, model.cfg.embed_dim, table[views[t]][None],
-                                         table[targets][None], st, adapted, rec)
+            lg, v, st = factored_forward(
+                params, model.cfg.embed_dim,
+                _feats(model, params, adapted, table, views[t], rec)[None], tgt_f[None], st,
+                adapted, rec)
             hs.append(st[0])
             lgs.append(lg[0])
             logits.append(lg[0])

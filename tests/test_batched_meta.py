@@ -25,14 +25,18 @@ from geonav.policy.meta_config import ISARConfig, MetaConfig, SAVNConfig
 from geonav.policy.testing import tiny_env_factory, tiny_net
 
 
-def test_first_meta_update_equals_reference(tmp_path):
+@pytest.mark.parametrize("encoder", ["random", "cnn"])
+def test_first_meta_update_equals_reference(tmp_path, encoder):
+    """SAVN base (the trainable CNN adapted per slot in the inner steps, too)."""
     factory = tiny_env_factory(cells=5, max_steps=12)
-    net = tiny_net("random", 32, size=16)
+    net = tiny_net(encoder, 32, size=16)
     base = SAVNConfig(k_steps=3, inner_steps=2, inner_lr=0.5)
     meta = MetaConfig(episodes=1, workers=0, batch_tasks=1, meta_lr=0.1, seed=4)
     ref = MetaTrainer(factory, net, "savn", base, meta, tensorboard=False)
     ref.train()
-    bat = BatchedMetaSAVN(factory, net, base, meta, out_dir=tmp_path, tensorboard=False)
+    bat = build_meta_trainer("savn", "batched", factory, net, base, meta, out_dir=tmp_path,
+                             tensorboard=False)
+    assert isinstance(bat, BatchedMetaSAVN)
     res = bat.train()
     assert res.episodes == 1 and bat.meta_updates == 1
     for (n, a), b in zip(ref.model.named_parameters(), bat.model.parameters(), strict=True):
@@ -87,7 +91,14 @@ def force_actions(monkeypatch, script):
         now["t"] += 1
         return int(script[now["task"]][now["t"] - 1])
 
+    reset_env = a3c_mod.A3CWorker.reset_env
+
+    def ref_reset(self):  # every episode of a task visit follows the task's script
+        now["t"] = 0
+        return reset_env(self)
+
     monkeypatch.setattr(TaskRunner, "run", ref_run)
+    monkeypatch.setattr(a3c_mod.A3CWorker, "reset_env", ref_reset)
     monkeypatch.setattr(isar_mod, "choose_action", ref_choose)
     monkeypatch.setattr(a3c_mod, "choose_action", ref_choose)
     box = {}
@@ -107,12 +118,15 @@ BASES = {"isar2": ISARConfig(n_steps=2, k_segments=3, alpha=0.5, lr=0.05, max_gr
          "a3c": A3CConfig(t_max=3, lr=0.05, max_grad_norm=0.2)}
 
 
-@pytest.mark.parametrize("base", [*BASES, "isar2-prev"])
+@pytest.mark.parametrize("base", [*BASES, "isar2-prev", "isar2-E2", "a3c-E2"])
 @pytest.mark.parametrize("b", [1, 3])
 def test_meta_update_equals_reference(float64, monkeypatch, base, b):
     """B tasks' gradients g_i and the meta update equal the async MetaTrainer's (its
     TaskRunner's, one task after another) on the same trajectories, to 1e-10 (isar2-prev:
-    a network with the zero-filled previous-altitude input slot)."""
+    a network with the zero-filled previous-altitude input slot; -E2: E = 2 episodes per
+    task visit, the second going on from the first's phi^i and in-task Adam)."""
+    e = 2 if base.endswith("-E2") else 1
+    base = base.removesuffix("-E2")
     base, prev = base.removesuffix("-prev"), base.endswith("-prev")
     algo = base[:4].rstrip("12")
     factory = multi_task_factory(3)
@@ -120,7 +134,8 @@ def test_meta_update_equals_reference(float64, monkeypatch, base, b):
     script[1, :6] = [3, 2, 3, 2, 3, 2]  # task 1 walks to its target (0, 0)
     box = force_actions(monkeypatch, script)
     net = replace(tiny_net("random", 32, size=16), prev_view_input=prev)
-    meta = MetaConfig(episodes=2 * b, workers=0, batch_tasks=b, meta_lr=0.1, seed=4)
+    meta = MetaConfig(episodes=2 * b * e, workers=0, batch_tasks=b, meta_lr=0.1, seed=4,
+                      episodes_per_task=e)
     ref = MetaTrainer(factory, net, algo, BASES[base], meta, keep_task_grads=True,
                       tensorboard=False)
     ref_res = ref.train()
@@ -135,7 +150,10 @@ def test_meta_update_equals_reference(float64, monkeypatch, base, b):
     for key in ("inner_updates", "adaptive_updates", "meta_update", "task_index"):
         assert [r.get(key) for r in res.records] == [r.get(key) for r in ref_res.records]
     if b == 3:  # one episode ends early, mid-window; the others run to the cap
-        assert lengths[1] < L and L in lengths, lengths
+        assert lengths[e] < L and L in lengths, lengths
+    if e == 2:  # a visit's second episode starts where the first left phi^i and its Adam
+        assert [r["task_index"] for r in res.records[:2 * b]] == \
+            [j for j in range(b) for _ in range(2)]
     names = [n for n, _ in ref.model.named_parameters()]
     assert len(bat.update_log) == len(ref.update_log) == 2  # the second reuses the buffers
     for r_log, b_log in zip(ref.update_log, bat.update_log, strict=True):

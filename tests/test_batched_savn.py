@@ -15,10 +15,12 @@ from geonav.policy.savn import SAVNTrainer
 from geonav.policy.testing import tiny_env_factory, tiny_net
 
 
-@pytest.mark.parametrize("second_order", [True, False])
-def test_b1_episode_meta_gradient_equals_reference(second_order):
+@pytest.mark.parametrize("second_order,encoder", [(True, "random"), (False, "random"),
+                                                  (True, "cnn"), (False, "cnn")])
+def test_b1_episode_meta_gradient_equals_reference(second_order, encoder):
+    """The trainable CNN adapts in the inner steps too (per-slot dense weight changes)."""
     factory = tiny_env_factory(cells=5, max_steps=12)
-    net = tiny_net("random", 32, size=16)
+    net = tiny_net(encoder, 32, size=16)
     cfg = SAVNConfig(episodes=1, workers=0, k_steps=3, inner_steps=2, inner_lr=0.5, seed=4,
                      second_order=second_order)
     ref = SAVNTrainer(factory, net, cfg, tensorboard=False)
@@ -44,6 +46,19 @@ def test_learns_tiny_task():
     assert sr >= rnd + 0.3, (sr, rnd)
 
 
+@pytest.mark.slow
+def test_learns_tiny_task_with_the_trainable_cnn():
+    """The CNN trained end to end, adapted per slot in the inner steps."""
+    factory = tiny_env_factory(cells=4, max_steps=7)
+    env = factory()
+    cfg = SAVNConfig(episodes=3000, lr=1e-3, adam_eps=1e-5, amsgrad=False, seed=0,
+                     eval_every=0)
+    t = BatchedSAVNTrainer(factory, tiny_net("cnn", 32), cfg, batch=16, tensorboard=False)
+    res = t.train()
+    sr, rnd = greedy_sr(res.model, t.frozen, env), random_sr(env)
+    assert sr >= rnd + 0.3, (sr, rnd)
+
+
 def test_b1_with_kl_teacher_equals_reference(tmp_path):
     """The curriculum's KL prior in the learned loss and the meta-loss (option A)."""
     net = tiny_net("random", 32, size=16)
@@ -57,3 +72,29 @@ def test_b1_with_kl_teacher_equals_reference(tmp_path):
     names = [n for n, _ in ref.model.named_parameters()] + \
         [f"ll.{n}" for n, _ in ref.aux["interaction_loss"].named_parameters()]
     assert_grads_close(names, ref_grads, got, 1e-5, 1e-4)
+
+
+@pytest.mark.parametrize("encoder", ["random", "cnn"])
+def test_b1_truncation_bootstrap_equals_reference(encoder):
+    """``bootstrap_on_truncation``: an episode cut by the step cap bootstraps its meta-loss
+    with V(s_T) under the last theta (the reference's update; without it, another one)."""
+    from dataclasses import replace
+
+    from geonav.policy.config import LossConfig
+
+    factory = tiny_env_factory(cells=5, max_steps=7)
+    net = tiny_net(encoder, 32, size=16)
+    cfg = SAVNConfig(episodes=1, workers=0, k_steps=3, inner_steps=2, inner_lr=0.5, seed=4,
+                     loss=LossConfig(bootstrap_on_truncation=True))
+    ref = SAVNTrainer(factory, net, cfg, tensorboard=False)
+    bat = BatchedSAVNTrainer(factory, net, cfg, batch=1, tensorboard=False)
+    ref_grads, got, rec, _, _ = first_update_grads(ref, bat)
+    assert not rec["success"] and rec["length"] == 7  # truncated, after two inner steps
+    names = [n for n, _ in ref.model.named_parameters()] + \
+        [f"ll.{n}" for n, _ in ref.aux["interaction_loss"].named_parameters()]
+    assert_grads_close(names, ref_grads, got, 1e-5, 1e-4)
+    off = replace(cfg, loss=LossConfig())
+    _, no_boot, _, _, _ = first_update_grads(SAVNTrainer(factory, net, off, tensorboard=False),
+                                             BatchedSAVNTrainer(factory, net, off, batch=1,
+                                                                tensorboard=False))
+    assert max(float((a - b).abs().max()) for a, b in zip(got, no_boot, strict=True)) > 1e-5

@@ -328,7 +328,7 @@ def run_group(payloads: list[dict[str, Any]]) -> dict[str, Any]:
     return {"members": results}
 
 
-PACKABLE_ALGOS = ("a3c", "ppo", "isar")
+PACKABLE_ALGOS = ("a3c", "ppo", "isar", "savn")
 """Algorithms whose train-mode units of one stage a run packs (``pack = true``)."""
 
 

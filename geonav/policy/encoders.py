@@ -44,8 +44,10 @@ _IMAGENET_STD = (0.229, 0.224, 0.225)
 INPUT_NORMS = ("center", "none")
 
 
-def images_to_float(images: torch.Tensor, input_norm: str = "none") -> torch.Tensor:
-    """uint8 (B, N, N, 3) -> float32 (B, 3, N, N).
+def images_to_float(images: torch.Tensor, input_norm: str = "none",
+                    dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """uint8 (B, N, N, 3) -> float (B, 3, N, N), float32 unless ``dtype`` says otherwise
+    (the trainable CNN passes its weights' dtype, so a float64 network takes uint8 views).
 
     ``input_norm='none'``: [0, 1]. ``'center'``: (x/255 - 0.5) / 0.25, so about [-2, 2]
     and zero-mean for mid-grey imagery. Why centre: with [0, 1] inputs every view shares a
@@ -53,7 +55,7 @@ def images_to_float(images: torch.Tensor, input_norm: str = "none") -> torch.Ten
     dominated by it, and the cell-dependent part that navigation needs starts as a small
     perturbation (issue 10's measurements: 0.09 % of the logits' magnitude after training).
     """
-    x = images.permute(0, 3, 1, 2).float()
+    x = images.permute(0, 3, 1, 2).to(dtype)
     if input_norm == "center":
         return x.mul_(4.0 / 255.0).sub_(2.0)
     if input_norm == "none":
@@ -79,8 +81,8 @@ class SmallCNN(nn.Module):
         self.out_dim = 32 * s2 * s2
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
-        x = images_to_float(images, self.input_norm) if images.dtype == torch.uint8 \
-            else images
+        x = images_to_float(images, self.input_norm, self.conv1.weight.dtype) \
+            if images.dtype == torch.uint8 else images
         x = torch.relu(self.conv1(x))
         x = torch.relu(self.conv2(x))
         return x.flatten(1)

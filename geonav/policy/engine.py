@@ -6,9 +6,9 @@ one process; ``engine = "async"`` is the per-episode, multi-process trainer of
 the paper-faithful asynchronous form and the reference the batched learners are tested
 against. Both write the same run folders, checkpoints and metrics.
 
-Where the batched engine does not implement a combination (ISAR or SAVN with the
-trainable CNN; SAVN with the truncation bootstrap; ISAR without the partial-window
-flush), :func:`resolve` falls
+Where the batched engine does not implement a combination (ISAR without the
+partial-window flush; the previous-altitude view input outside ISAR and SAVN;
+meta-training with the ISAR or A3C base and the trainable CNN), :func:`resolve` falls
 back to the async trainer, logs a warning and says so in the returned reason, which
 the trainers record in config.json.
 PPO exists on the batched engine only.
@@ -43,13 +43,9 @@ def _fallback_reason(algo: str, net_cfg: Any, cfg: Any, teacher: bool, prev_view
                      ) -> str | None:
     if prev_view and algo not in ("isar", "savn"):
         return f"the previous-altitude view input is implemented for isar and savn, not {algo}"
+    if prev_view and (net_cfg is None or net_cfg.encoder == "cnn"):
+        return "the previous-altitude view input on the batched engine needs a frozen encoder"
     if algo in ("isar", "savn"):
-        if net_cfg is None or net_cfg.encoder == "cnn":
-            return (f"batched {algo.upper()} needs a frozen encoder (the trainable CNN is "
-                    "not factored)")
-        if cfg is not None and getattr(cfg.loss, "bootstrap_on_truncation", False) and \
-                algo == "savn":
-            return "SAVN's truncation bootstrap is implemented on the async engine only"
         if cfg is not None and not getattr(cfg, "flush_partial_window", True):
             return "flush_partial_window = false is implemented on the async engine only"
     return None
@@ -119,7 +115,8 @@ def build_meta_trainer(algo: str, engine: str, env_factory: Any, net_cfg: Any, b
                        meta_cfg: Any, *, batch: int | None = None, device: str | None = None,
                        **kwargs: Any) -> Any:
     """Meta-training on the batched engine where it is implemented (SAVN, ISAR and A3C
-    bases, E = 1, a frozen encoder: :mod:`geonav.policy.batched.meta`), else
+    bases; E = 1 for SAVN, a frozen encoder for ISAR and A3C:
+    :mod:`geonav.policy.batched.meta`), else
     :class:`~geonav.policy.meta.MetaTrainer` (async, with a warning when the batched engine
     was asked for). ``batch`` is unused: B is the meta-batch."""
     if engine not in ENGINES:
@@ -133,11 +130,12 @@ def build_meta_trainer(algo: str, engine: str, env_factory: Any, net_cfg: Any, b
 
             net_cfg = load_checkpoint(kwargs["resume"]).net_config  # the resumed network
         reason = _fallback_reason(algo, net_cfg, base_cfg, False, False)
-        if reason is None and (net_cfg is None or net_cfg.encoder == "cnn"):
-            reason = ("batched meta-training needs a frozen encoder (per-task copies of the "
-                      "trainable CNN are not implemented)")
-        if reason is None and meta_cfg.episodes_per_task != 1:
-            reason = "batched meta-training runs E = 1 episode per task visit"
+        if reason is None and algo != "savn" and (net_cfg is None or net_cfg.encoder == "cnn"):
+            reason = (f"batched meta-training with the {algo.upper()} base needs a frozen "
+                      "encoder (per-task copies of the trainable CNN are not implemented)")
+        if reason is None and meta_cfg.episodes_per_task != 1 and algo == "savn":
+            reason = ("batched meta-training with the SAVN base runs E = 1 episode per task "
+                      "visit (its slots share psi)")
         if reason is None:
             from geonav.policy.batched.meta import BATCHED_META
 

@@ -18,6 +18,13 @@ their episodes:
   ``W_s x = W x + U^T (V x)`` keeps one shared matrix product per layer. The LSTM's
   input and hidden matrices are two such layers sharing u = dL/dgates. Kept in the graph
   (create_graph) the factors give the exact second-order gradient.
+* the trainable CNN's per-slot adapted weights are dense (:class:`SlotDeltas`,
+  ``theta_s = phi + delta[s]``): a convolution's weight gradient sums an outer product
+  over every output position of every view, so its factors would outnumber its weights
+  (11k values at 84 px). :func:`encode_slots` encodes each slot's views with its own
+  weights (``torch.func.vmap`` over ``functional_call`` of the module's own encoder, a
+  grouped convolution), and the :class:`Recorder` takes the per-slot gradients w.r.t.
+  those (B, ...) weight tensors together with the linear layers' output gradients.
 
 Layer order and maths as ActorCritic.forward: embeddings with ReLU, the FC layer over
 ``cat(obs_e, tgt_e, act_e)`` with ReLU, an LSTM cell (gates i, f, g, o as
@@ -28,7 +35,7 @@ Layer order and maths as ActorCritic.forward: embeddings with ReLU, the FC layer
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import torch
@@ -53,12 +60,13 @@ LAYERS: dict[str, tuple[str, str]] = {
 }
 
 
-def check_supported(model: ActorCritic, *, adapted: bool = False) -> None:
-    """Refuse what the batched forward does not implement (typed, actionable errors)."""
-    if adapted and model.encoder is not None:
-        raise ConfigError("per-episode adapted weights (ISAR, SAVN) on the batched engine "
-                          "need a frozen encoder (encoder = 'random' or 'resnet18'); the "
-                          "trainable CNN runs on engine = 'async'")
+def check_supported(model: ActorCritic, *, per_slot_parameters: bool = False) -> None:
+    """Refuse what the batched forward does not implement (typed, actionable errors):
+    stacked per-slot parameters (meta-training's phi^i) need a frozen encoder."""
+    if per_slot_parameters and model.encoder is not None:
+        raise ConfigError("per-task parameters on the batched engine (meta-training with the "
+                          "ISAR or A3C base) need a frozen encoder (encoder = 'random' or "
+                          "'resnet18'); the trainable CNN runs on engine = 'async'")
 
 
 @dataclass
@@ -112,6 +120,12 @@ class Factors:
                        v if self.V is None else torch.cat([self.V, v], 1),
                        db if self.db is None else self.db + db)
 
+    def cleared(self, keep: torch.Tensor) -> Factors:
+        """W_s <- W, b_s <- b where ``keep`` (B,) is 0 (those slots' factors zeroed)."""
+        k = keep.view(-1, 1)
+        return replace(self, U=None if self.U is None else self.U * k.unsqueeze(-1),
+                       db=None if self.db is None else self.db * k)
+
     def dense(self, table: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """(B, out, in) weight change and (B, out) bias change (tests; ``table`` resolves
         row-index factors)."""
@@ -121,7 +135,50 @@ class Factors:
         return torch.bmm(self.U.transpose(1, 2), V), self.db
 
 
-Adapted = dict[str, Factors]
+ENCODER = "encoder"
+"""The :data:`Adapted` key of the trainable CNN's per-slot weights (:class:`SlotDeltas`)."""
+
+
+@dataclass
+class SlotDeltas:
+    """Per-slot adapted weights of the trainable CNN, dense: theta_s = phi + delta[name][s]."""
+
+    delta: dict[str, torch.Tensor]
+    """Encoder parameter name (without ``encoder.``) -> (B, ...) weight change."""
+
+    def add(self, grads: dict[str, torch.Tensor], lr: float) -> SlotDeltas:
+        """These changes plus the SGD step -lr * grads (name -> (B, ...))."""
+        return SlotDeltas({n: -lr * g if n not in self.delta else self.delta[n] - lr * g
+                           for n, g in grads.items()})
+
+    def cleared(self, keep: torch.Tensor) -> SlotDeltas:
+        """theta_s <- phi where ``keep`` (B,) is 0."""
+        return SlotDeltas({n: d * keep.view(-1, *([1] * (d.dim() - 1)))
+                           for n, d in self.delta.items()})
+
+
+Adapted = dict[str, Any]
+"""Layer key -> :class:`Factors`, and :data:`ENCODER` -> :class:`SlotDeltas`."""
+
+
+def encoder_weights(params: Params, adapted: Adapted | None, b: int) -> Params:
+    """The trainable CNN's weights of every slot, name (without ``encoder.``) -> (B, ...):
+    phi expanded, plus the slots' :class:`SlotDeltas` when adapted."""
+    d = (adapted or {}).get(ENCODER)
+    out: Params = {}
+    for name, p in params.items():
+        if name.startswith("encoder."):
+            key = name[len("encoder."):]
+            w = p.expand(b, *p.shape)
+            out[key] = w if d is None or key not in d.delta else w + d.delta[key]
+    return out
+
+
+def encode_slots(encoder: torch.nn.Module, weights: Params, images: torch.Tensor
+                 ) -> torch.Tensor:
+    """(B, M, N, N, 3) uint8 views, slot s's M encoded with its weights -> (B, M, F)."""
+    return torch.func.vmap(lambda w, x: torch.func.functional_call(encoder, w, (x,)))(
+        weights, images)
 
 
 @dataclass
@@ -133,10 +190,16 @@ class Recorder:
         default_factory=list)
     gram: torch.Tensor | None = None
     """The Gram matrix of the feature table, when inputs are recorded as row indices."""
+    encoder_uses: list[Params] = field(default_factory=list)
+    """The per-slot trainable-CNN weights (:func:`encoder_weights`) of every encoding."""
 
     def add(self, key: str, x: torch.Tensor, y: torch.Tensor,
             idx: torch.Tensor | None = None) -> None:
         self.entries.append((key, x, y, idx))
+
+    def add_encoder(self, weights: Params) -> None:
+        if not any(w is weights for w in self.encoder_uses):
+            self.encoder_uses.append(weights)
 
     def inner_factors(self, loss: torch.Tensor, adapted: Adapted, lr: float, *,
                       create_graph: bool, weights: torch.Tensor | None = None) -> Adapted:
@@ -153,8 +216,20 @@ class Recorder:
             if id(y) not in pos:
                 pos[id(y)] = len(ys)
                 ys.append(y)
-        grads = torch.autograd.grad(loss, ys, create_graph=create_graph, retain_graph=True,
-                                    allow_unused=True)
+        enc = [(n, w) for use in self.encoder_uses for n, w in use.items()]
+        grads = torch.autograd.grad(loss, ys + [w for _, w in enc], create_graph=create_graph,
+                                    retain_graph=True, allow_unused=True)
+        out = dict(adapted)
+        if enc:  # the CNN's per-slot gradients: summed over its uses (each is theta_s)
+            g_enc: dict[str, torch.Tensor] = {}
+            for (n, w), g in zip(enc, grads[len(ys):], strict=True):
+                g = torch.zeros_like(w) if g is None else g
+                if not create_graph:
+                    g = g.detach()
+                if weights is not None:
+                    g = g * weights.view(-1, *([1] * (g.dim() - 1))).to(g.dtype)
+                g_enc[n] = g if n not in g_enc else g_enc[n] + g
+            out[ENCODER] = adapted.get(ENCODER, SlotDeltas({})).add(g_enc, lr)
         per_key: dict[str, tuple[list[torch.Tensor], list[torch.Tensor], list[Any]]] = {}
         for key, x, y, idx in self.entries:
             g = grads[pos[id(y)]]
@@ -168,7 +243,6 @@ class Recorder:
             us.append(g)
             vs.append(x)
             ids.append(idx)
-        out = dict(adapted)
         for key, (us, vs, ids) in per_key.items():
             by_index = self.gram is not None and all(i is not None for i in ids)
             out[key] = adapted.get(key, Factors()).add(
@@ -441,13 +515,23 @@ class ActingTables:
         return self._obs[view_idx] + self._tgt[target_idx]
 
 
-def sample_actions(logits: torch.Tensor, rng: object) -> torch.Tensor:
+def sample_actions(logits: torch.Tensor, rng: object, live: Any = None) -> torch.Tensor:
     """A draw per row from softmax(logits) (B, A) with a numpy Generator, by the rule of
-    :func:`geonav.policy.agent.choose_action` (so B = 1 draws equal the reference's)."""
+    :func:`geonav.policy.agent.choose_action` (so B = 1 draws equal the reference's).
+
+    ``live`` (B,) bool: draw for those rows only (the others get action 0), so a run's
+    stream does not depend on how long masked rows keep stepping (SAVN's rounds, packed:
+    ``rng`` then draws each run's live rows from its own generator)."""
     import numpy as np
 
     probs = torch.softmax(logits.detach(), dim=-1).to("cpu", torch.float64).numpy()
     cdf = np.cumsum(probs, axis=1)
-    x = rng.random(probs.shape[0]) * cdf[:, -1]  # type: ignore[attr-defined]
+    if live is None:
+        u = rng.random(probs.shape[0])  # type: ignore[attr-defined]
+    else:
+        u = np.zeros(probs.shape[0])
+        u[live] = rng.random_live(live) if hasattr(rng, "random_live") \
+            else rng.random(int(live.sum()))  # type: ignore[attr-defined]
+    x = u * cdf[:, -1]
     a = (cdf <= x[:, None]).sum(1)
     return torch.from_numpy(np.minimum(a, probs.shape[1] - 1))

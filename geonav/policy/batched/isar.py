@@ -23,8 +23,10 @@ With B = 1 the first episode follows Algorithm 1 exactly; later episodes (and ev
 episode at B > 1) begin wherever the global clock stands, so their first segment and
 window may be shorter than N and K. This is the synchronous form of ISAR, as batched A3C
 is of A3C; the asynchronous per-episode schedule stays in :mod:`geonav.policy.isar`
-(``engine = "async"``). Needs a frozen encoder: the trainable CNN's convolutions are not
-factored (the CLI falls back to the async engine for it).
+(``engine = "async"``). With the trainable CNN, theta_s adapts the convolutions too
+(dense per-slot weight changes, :class:`~geonav.policy.batched.core.SlotDeltas`): each
+slot's current view is encoded once per step and its target once per segment (and at a
+new episode) under its own weights, with the graph, in one grouped call for the B slots.
 """
 
 from __future__ import annotations
@@ -46,10 +48,9 @@ from geonav.policy.model import detach_state
 
 
 def clear_slots(adapted: Adapted, keep: torch.Tensor) -> Adapted:
-    """theta_s <- phi for the slots where ``keep`` (B,) is 0 (their factors zeroed)."""
-    k = keep.view(-1, 1)
-    return {key: replace(f, U=None if f.U is None else f.U * k.unsqueeze(-1),
-                         db=None if f.db is None else f.db * k) for key, f in adapted.items()}
+    """theta_s <- phi for the slots where ``keep`` (B,) is 0 (their factors and CNN weight
+    changes zeroed)."""
+    return {key: f.cleared(keep) for key, f in adapted.items()}
 
 
 class BatchedISARTrainer(BatchedTrainer):
@@ -57,7 +58,6 @@ class BatchedISARTrainer(BatchedTrainer):
 
     algorithm = "isar"
     config_key = "isar"
-    adapted_weights = True
     cfg: ISARConfig
 
     def __init__(self, env_factory: Any, net_cfg: Any = None, cfg: ISARConfig | None = None,
@@ -109,22 +109,24 @@ class BatchedISARTrainer(BatchedTrainer):
         end_values = np.zeros((n, b)) if cfg.loss.bootstrap_on_truncation else None
         current = torch.ones(n, b, dtype=values_dtype(self), device=dev)
         finals: list[dict[str, Any]] = []
-        assert self.table is not None
+        tgt_f: torch.Tensor | None = None
         for t in range(n):
             vi, ti = self.slot_indices()
             if self.teacher is not None:
                 tlogp.append(self.teacher.step(vi, ti, self.fresh))
                 lams.append([self.teacher.weight(int(k)) for k in self.slot_episode])
-            logit, value, state = factored_step(params, e, self.table[vi], self.table[ti],
-                                                state, adapted, rec, self.fresh, vi, ti,
+            tgt_f = self.slot_targets(params, adapted, ti, rec, tgt_f)
+            logit, value, state = factored_step(params, e, self.slot_views(params, adapted, vi,
+                                                                           rec),
+                                                tgt_f, state, adapted, rec, self.fresh, vi, ti,
                                                 self.prev_features(vi))
             a = sample_actions(logit, self.rng).to(dev)
             res = self.env_step(a)
             if end_values is not None and res.truncated.any():
                 with torch.no_grad():
                     fv = torch.from_numpy(res.final_view).to(dev)
-                    _, v_end, _ = factored_step(params, e, self.table[fv], self.table[ti],
-                                                state, adapted, None, None, fv, ti,
+                    _, v_end, _ = factored_step(params, e, self.slot_views(params, adapted, fv),
+                                                tgt_f, state, adapted, None, None, fv, ti,
                                                 self.prev_features(fv))
                 end_values[t] = np.where(res.truncated, v_end.cpu().numpy(), 0.0)
             logits.append(logit)
@@ -144,14 +146,12 @@ class BatchedISARTrainer(BatchedTrainer):
                 finals += res.final
         with torch.no_grad():  # V(s_next) under theta_s, without advancing the state
             vi, ti = self.slot_indices()
-            _, v_next, _ = factored_step(params, e, self.table[vi], self.table[ti], state,
-                                         adapted, None, self.fresh, vi, ti,
+            _, v_next, _ = factored_step(params, e, self.slot_views(params, adapted, vi),
+                                         self.slot_targets(params, adapted, ti, None, tgt_f),
+                                         state, adapted, None, self.fresh, vi, ti,
                                          self.prev_features(vi))
         lg = torch.stack(logits)
-        slices = self.run_slices()  # one run; one per run when packed (run masks)
-        masks: list[torch.Tensor | None] = [None] if len(slices) == 1 else [
-            torch.zeros_like(current).index_fill_(1, torch.arange(b, device=dev)[s], 1.0)
-            for s in slices]
+        masks = self.run_masks(current)  # one run; one per run when packed
         *runs, mine = segment_terms(lg, torch.stack(values), torch.stack(actions), rewards,
                                     ends, v_next, cfg.loss, end_values, [*masks, current])
         total = torch.stack([r.total for r in runs]).sum()

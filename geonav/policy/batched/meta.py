@@ -1,9 +1,10 @@
-"""Meta-training (Eq. 1, ALGORITHMS.md (d)) on the batched engine, E = 1, frozen encoder.
+"""Meta-training (Eq. 1, ALGORITHMS.md (d)) on the batched engine.
 
-A meta-iteration takes the next B meta-tasks in cyclic order and runs one episode of the
-base algorithm on each, all B at once: slot j of the round is pinned to task j of the
-batch and starts from psi. Task i's gradient g_i is what the reference
-(:class:`~geonav.policy.meta.MetaTrainer` and its ``TaskRunner``) defines; then
+A meta-iteration takes the next B meta-tasks in cyclic order and runs E episodes of the
+base algorithm on each (``episodes_per_task``; E = 1 with the SAVN base), all B at once:
+slot j of the round is pinned to task j of the batch and starts from psi. Task i's
+gradient g_i is what the reference (:class:`~geonav.policy.meta.MetaTrainer` and its
+``TaskRunner``) defines; then
 psi <- psi - eta sum_i g_i (:func:`~geonav.policy.meta.meta_step`: SGD, or Adam as
 ``meta_optimizer``; ``meta_max_grad_norm`` clips the sum). Checkpoints are written after
 the meta update that reaches every ``checkpoint_every`` episodes, as the reference does,
@@ -13,19 +14,23 @@ so a resume starts at a batch boundary and goes on with the cyclic order.
   :class:`~geonav.policy.batched.savn.BatchedSAVNTrainer`'s episode-synchronous round):
   g_i is the episode's exact meta-gradient w.r.t. its initial parameters (= psi, and
   Lambda). With E = 1 the reference's in-task Adam never changes a task gradient (its
-  step follows the only episode and is discarded).
+  step follows the only episode and is discarded). The trainable CNN adapts per slot as
+  in single-task SAVN. E > 1 would need per-task copies of psi: the async engine runs it.
 * **ISAR base** (:class:`BatchedMetaISAR`): each slot carries its own copy of the
   parameters, phi^i, stacked along a leading dim (B, ...) (per-slot weights of every
   linear map, :func:`~geonav.policy.batched.core.linear`), and its own fresh in-task
-  Adam state (one Adam over the stacked tensors: Adam is elementwise and every live
-  slot steps at the same windows, so slot j's moments and step count are exactly a
-  per-task Adam's). On top of phi^i the interaction policy theta is the exact factored
+  Adam state (:class:`SlotAdam` over the stacked tensors: Adam is elementwise, and a
+  step count per slot with only the live slots stepping makes slot j's moments and bias
+  corrections exactly a per-task Adam's). With E > 1 the visit's episodes run one after
+  another, each from h = 0 on the phi^i and Adam the previous one left (the rounds of
+  all slots in lock-step; the starts of a visit's episodes are drawn together, in the
+  reference's order). On top of phi^i the interaction policy theta is the exact factored
   per-slot inner update of :mod:`geonav.policy.batched.isar` (N-step segments, inner SGD
   at the first K - 1 segment ends, create_graph = ``second_order``); at each window end
   (K segments, or the episode end) grad_phi^i of the window's summed L_adapt is added,
   unclipped, to g_i, clipped per slot to ``max_grad_norm`` and stepped by the slot's
   Adam; theta <- phi^i, h detached. g_i = sum over windows of those gradients (first
-  order in psi: d phi^i / d psi is taken as I).
+  order in psi: d phi^i / d psi is taken as I). Needs a frozen encoder.
 * **A3C base** (:class:`BatchedMetaA3C`): the same with windows of one segment of
   ``t_max`` steps and no inner step: one per-task Adam step per rollout, g_i the sum of
   the rollout gradients (ISAR with K = 1 is the A3C worker's update exactly).
@@ -44,7 +49,7 @@ global clock as each reference episode's own; a slot whose episode ends waits (i
 steps are masked out, its partial window is flushed at the window end, where its phi^i
 has not changed since, so this is the reference's flush at done) until every slot has
 finished. ``tests/test_batched_meta.py`` checks the meta update of B = 1 and B = 3 tasks
-against the reference's in float64 on forced trajectories.
+(E = 1 and 2) against the reference's in float64 on forced trajectories.
 """
 
 from __future__ import annotations
@@ -86,14 +91,17 @@ class MetaRun:
     base_algo = ""
     base_overrides: ClassVar[dict[str, Any]] = {}
     """Base-config fields the meta run sets (besides its budget, seed and threads)."""
+    many_episodes_per_task = False
+    """True where E > 1 episodes per task visit are implemented (per-task parameters)."""
 
     def __init__(self, env_factory: Any, net_cfg: Any, base_cfg: A3CConfig,
                  meta_cfg: MetaConfig | None = None, *, keep_task_grads: bool = False,
                  **kwargs: Any) -> None:
         self.meta_cfg = m = meta_cfg if meta_cfg is not None else MetaConfig()
-        if m.episodes_per_task != 1:
-            raise ConfigError("batched meta-training runs E = 1 episode per task visit; "
-                              "use engine = 'async' for more")
+        if m.episodes_per_task != 1 and not self.many_episodes_per_task:
+            raise ConfigError(f"batched meta-training with the {self.base_algo.upper()} base "
+                              "runs E = 1 episode per task visit; use engine = 'async' for "
+                              "more")
         self.algorithm = f"meta-{self.base_algo}"
         base_cfg = replace(base_cfg, episodes=m.episodes, workers=m.workers, seed=m.seed,
                            checkpoint_every=0, torch_threads=m.torch_threads,
@@ -134,15 +142,15 @@ class MetaRun:
             np.int64)
 
     def make_venv(self) -> LatticeVecEnv:
-        self._visits = self.episodes_done  # type: ignore[attr-defined]
+        self._visits = self.episodes_done // self.meta_cfg.episodes_per_task  # type: ignore
         return LatticeVecEnv(self.env, self.batch,  # type: ignore[attr-defined]
                              slot_tasks=self.batch_tasks(self._visits))
 
     def next_round(self, visits: int | None = None) -> None:
-        """The next B tasks (``visits``: the episodes the round ran; default B)."""
+        """The next B tasks (``visits``: the task visits the round ran; default B)."""
         self._visits += self.batch if visits is None else visits  # type: ignore
         self.venv.slot_tasks = self.batch_tasks(self._visits)  # type: ignore[attr-defined]
-        self.venv.reset()  # type: ignore[attr-defined]
+        self.reset_venv()  # type: ignore[attr-defined]
 
     def after_update(self, before: int, cbs: list[Callback]) -> None:
         checkpoint_after_update(self, before, cbs, self.rng_snapshot)  # type: ignore
@@ -182,6 +190,58 @@ class BatchedMetaSAVN(MetaRun, BatchedSAVNTrainer):
         return finals, stats
 
 
+class SlotAdam:
+    """Adam over stacked per-slot parameters (B, ...) with a step count per slot.
+
+    A step moves only the live slots, so each slot's moments and bias corrections are
+    those of its own ``torch.optim.Adam`` (the reference's fresh in-task Adam per task
+    visit), also when the slots' episodes end at different windows and the next episode
+    of the visit (E > 1) goes on with them. The update is torch's Adam (L2-free):
+    m <- beta1 m + (1 - beta1) g, v <- beta2 v + (1 - beta2) g^2 (amsgrad: the running
+    max of v), p <- p - lr / (1 - beta1^t) * m / (sqrt(v) / sqrt(1 - beta2^t) + eps).
+    """
+
+    def __init__(self, params: list[torch.Tensor], lr: float, betas: tuple[float, float],
+                 eps: float, amsgrad: bool) -> None:
+        self.params, self.lr, self.betas, self.eps, self.amsgrad = params, lr, betas, eps, \
+            amsgrad
+        self.steps = torch.zeros(params[0].shape[0], dtype=torch.float64,
+                                 device=params[0].device)
+        self.m = [torch.zeros_like(p) for p in params]
+        self.v = [torch.zeros_like(p) for p in params]
+        self.v_max = [torch.zeros_like(p) for p in params] if amsgrad else []
+
+    def reset(self) -> None:
+        """Step 0, zero moments (a fresh Adam for every slot)."""
+        self.steps.zero_()
+        for x in (*self.m, *self.v, *self.v_max):
+            x.zero_()
+
+    @torch.no_grad()
+    def step(self, grads: list[torch.Tensor], live: torch.Tensor) -> None:
+        """One Adam step of the slots where ``live`` (B,) bool, with ``grads`` (B, ...)."""
+        b1, b2 = self.betas
+        every = bool(live.all())
+        self.steps += live.to(self.steps.dtype)
+        t = self.steps.clamp(min=1.0)
+        step_size = self.lr / (1.0 - b1 ** t)                                   # (B,)
+        bc2_sqrt = (1.0 - b2 ** t).sqrt()
+        for i, (p, g) in enumerate(zip(self.params, grads, strict=True)):
+            shape = (-1,) + (1,) * (p.dim() - 1)
+            keep = live.view(shape)
+            m = self.m[i].lerp(g, 1.0 - b1)
+            v = self.v[i] * b2 + (1.0 - b2) * g * g
+            vv = v
+            if self.amsgrad:
+                vv = torch.maximum(self.v_max[i], v)
+                self.v_max[i].copy_(vv if every else torch.where(keep, vv, self.v_max[i]))
+            denom = vv.sqrt() / bc2_sqrt.to(p.dtype).view(shape) + self.eps
+            new = p - step_size.to(p.dtype).view(shape) * m / denom
+            self.m[i].copy_(m if every else torch.where(keep, m, self.m[i]))
+            self.v[i].copy_(v if every else torch.where(keep, v, self.v[i]))
+            p.copy_(new if every else torch.where(keep, new, p))
+
+
 def psi_layout(g: torch.Tensor) -> torch.Tensor:
     """One slot's gradient in its parameter's layout (weights are stored transposed)."""
     return g.t().contiguous() if g.dim() == 2 else g
@@ -206,7 +266,8 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
     its ``lr`` and Adam settings are the in-task Adam's, ``max_grad_norm`` its clip)."""
 
     base_algo = "isar"
-    adapted_weights = True
+    per_slot_parameters = True
+    many_episodes_per_task = True
     cfg: Any
     """An ISARConfig (ISAR base) or an A3CConfig (A3C base)."""
 
@@ -220,6 +281,18 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
     def schedule(self) -> tuple[int, int]:
         """(steps per segment N, segments per window K)."""
         return self.cfg.n_steps, self.cfg.k_segments
+
+    def reset_venv(self) -> None:
+        """The round's first episodes. With E > 1 the starts of every episode of the
+        visits are drawn here, visit by visit (a task's E episodes in turn, the
+        reference's order of draws), and :meth:`update` resets to them."""
+        e, venv = self.meta_cfg.episodes_per_task, self.venv
+        if e == 1:
+            venv.reset()
+            return
+        self._starts = np.array([[venv.draw_start(int(t)) for _ in range(e)]
+                                 for t in venv.slot_tasks])                     # (B, E, 2)
+        venv.reset(starts=self._starts[:, 0])
 
     def resolved_config(self) -> dict[str, Any]:
         d = super().resolved_config()
@@ -242,8 +315,7 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
                         "adaptive_updates": f["adaptive_updates"], "kl_weight": 0.0})
         return rec
 
-    def task_parameters(self) -> tuple[dict[str, torch.Tensor], torch.optim.Optimizer,
-                                       list[torch.Tensor]]:
+    def task_parameters(self) -> tuple[dict[str, torch.Tensor], SlotAdam, list[torch.Tensor]]:
         """phi^j <- psi for every slot, stacked (B, ...) leaves (weights (B, in, out), see
         :func:`~geonav.policy.batched.core.linear`), their fresh Adam and zeroed task
         gradients. The buffers live across rounds (re-allocating B copies of the network
@@ -254,17 +326,14 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
             phi = {n: torch.empty((b, *p.shape[::-1]) if p.dim() == 2 else (b, *p.shape),
                                   dtype=p.dtype, device=p.device).requires_grad_()
                    for n, p in psi.items()}
-            opt = torch.optim.Adam(list(phi.values()), lr=cfg.lr, betas=cfg.adam_betas,
-                                   eps=cfg.adam_eps, amsgrad=cfg.amsgrad,
-                                   fused=cfg.fused or None)
+            opt = SlotAdam(list(phi.values()), cfg.lr, cfg.adam_betas, cfg.adam_eps,
+                           cfg.amsgrad)
             self._slots = (phi, opt, [torch.zeros_like(x) for x in phi.values()])
         phi, opt, task_grads = self._slots
         with torch.no_grad():
             for n, p in psi.items():
                 phi[n].copy_((p.t() if p.dim() == 2 else p).unsqueeze(0).expand_as(phi[n]))
-            for st in opt.state.values():  # a fresh Adam: step 0, zero moments
-                for v in st.values():
-                    v.zero_()
+            opt.reset()  # a fresh Adam: step 0, zero moments
             for g in task_grads:
                 g.zero_()
         return phi, opt, task_grads
@@ -351,19 +420,66 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
         # contiguous: the fused Adam steps a parameter with its gradient's memory order
         return [out[n].contiguous() if n in out else torch.zeros_like(phi[n]) for n in names]
 
+    def jobs(self) -> np.ndarray:
+        """(B,) episodes of each slot's task visit in this meta-iteration (E, or fewer
+        at the end of the budget, as the reference's batches; 0: no task)."""
+        e = self.meta_cfg.episodes_per_task
+        left = self.cfg.episodes - self.episodes_done
+        return np.clip(left - e * np.arange(self.batch), 0, e)
+
     def update(self) -> tuple[list[dict[str, Any]], dict[str, float]]:
-        """One meta-iteration: an episode per slot on per-task parameters, the meta step."""
-        cfg, dev, b = self.cfg, self.device, self.batch
+        """One meta-iteration: E episodes per slot on per-task parameters (one after
+        another, phi^i and its Adam carried on), then the meta step."""
         if self._ran:  # the next tasks' episodes start here, so a checkpoint taken after
             self.next_round(self._ran)  # an update resumes with the same start draws
             self.t_episode[:] = time.perf_counter()
+        jobs = self.jobs()
+        n_jobs = int((jobs > 0).sum())
+        phi, opt, task_grads = self.task_parameters()
+        finals: list[dict[str, Any]] = []
+        sums = np.zeros(3)  # policy, value, entropy
+        live_segments = 0
+        for e in range(int(jobs.max())):
+            if e:  # the slots' next episodes on the same tasks
+                self.venv.reset(starts=self._starts[:, e])
+                self.t_episode[:] = time.perf_counter()
+            fin, segs = self.episode(phi, opt, task_grads, jobs > e, sums)
+            for f in fin:
+                f["task_episode"] = e
+            finals += fin
+            live_segments += segs
+        if self.on_gradients is not None:
+            self.on_gradients([psi_layout(g[:n_jobs].sum(0)) for g in task_grads])
+        total = [psi_layout(g[:n_jobs].sum(0)) for g in task_grads]
+        entry = meta_step(self.optimizer, self.params_list,
+                          [[psi_layout(g[j]) for g in task_grads] for j in range(n_jobs)]
+                          if self.keep_task_grads else [], self.meta_cfg.meta_max_grad_norm,
+                          keep=self.keep_task_grads, total=total)
+        self.meta_updates += 1
+        self.update_log.append({"tasks": self.venv.slot_tasks[:n_jobs].tolist(), **entry})
+        for f in finals:
+            f["t0"] = float(f.get("t0", self.t_episode[f["slot"]]))
+            f["meta_update"] = self.meta_updates
+        # records in batch order (a task's episodes in turn), as the reference's
+        finals.sort(key=lambda f: (f["slot"], f["task_episode"]))
+        self._ran = n_jobs
+        # per live slot and segment (entropy: per step), as the reference's episode means
+        segs = max(live_segments, 1)
+        return finals, {"policy_loss": sums[0] / segs, "value_loss": sums[1] / segs,
+                        "entropy": sums[2] / max(sum(f["length"] for f in finals), 1)}
+
+    def episode(self, phi: dict[str, torch.Tensor], opt: SlotAdam,
+                task_grads: list[torch.Tensor], alive: np.ndarray, sums: np.ndarray
+                ) -> tuple[list[dict[str, Any]], int]:
+        """One episode in every slot where ``alive`` (B,), from h = 0 on the slots' phi^i:
+        windows of up to K segments, each followed by the live slots' Adam step; the
+        window gradients are added to ``task_grads``, the loss figures to ``sums``.
+        Returns the finished episodes and the live slot-segments."""
+        cfg, dev, b = self.cfg, self.device, self.batch
         k = self.schedule()[1]
         second_order = bool(getattr(cfg, "second_order", False)) and k > 1
         dtype = values_dtype(self)
-        n_jobs = min(b, cfg.episodes - self.episodes_done)
-        alive = np.arange(b) < n_jobs
-        phi, opt, task_grads = self.task_parameters()
-        leaves = list(phi.values())
+        alive = alive.copy()
         z = torch.zeros(b, self.net_cfg.lstm_size, dtype=dtype, device=dev)
         state: State = (z, z.clone(), torch.zeros(b, self.net_cfg.n_actions, dtype=dtype,
                                                   device=dev))
@@ -377,6 +493,7 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
         # track the weights (the biases keep every output in the graph)
         untracked = {n: x.detach() if x.dim() == 3 else x for n, x in phi.items()}
         while alive.any():  # one window of up to K segments, then each slot's Adam step
+            live_window = torch.from_numpy(alive.copy()).to(dev)
             adapted: Adapted = {}
             window: list[torch.Tensor] = []
             entries: list[Any] = []
@@ -408,28 +525,12 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
                                       second_order)
             torch._foreach_add_(task_grads, grads)                 # g_i: unclipped
             clip_per_slot(grads, cfg.max_grad_norm)
-            for x, g in zip(leaves, grads, strict=True):
-                x.grad = g
-            opt.step()
+            opt.step(grads, live_window)
             state = detach_state(state)
-        if self.on_gradients is not None:
-            self.on_gradients([psi_layout(g[:n_jobs].sum(0)) for g in task_grads])
-        total = [psi_layout(g[:n_jobs].sum(0)) for g in task_grads]
-        entry = meta_step(self.optimizer, self.params_list,
-                          [[psi_layout(g[j]) for g in task_grads] for j in range(n_jobs)]
-                          if self.keep_task_grads else [], self.meta_cfg.meta_max_grad_norm,
-                          keep=self.keep_task_grads, total=total)
-        self.meta_updates += 1
-        self.update_log.append({"tasks": self.venv.slot_tasks[:n_jobs].tolist(), **entry})
         for f in finals:
             f["t0"] = float(self.t_episode[f["slot"]])
-            f["meta_update"] = self.meta_updates
-        finals.sort(key=lambda f: f["slot"])  # records in batch order, as the reference
-        self._ran = n_jobs
-        # per live slot and segment (entropy: per step), as the reference's episode means
-        segs = max(live_segments, 1)
-        return finals, {"policy_loss": pl / segs, "value_loss": vl / segs,
-                        "entropy": ent / max(sum(f["length"] for f in finals), 1)}
+        sums += [pl, vl, ent]
+        return finals, live_segments
 
 
 VIEW_PARAMS = ("obs_embed.weight", "obs_embed.bias", "target_embed.weight",

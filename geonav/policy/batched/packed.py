@@ -1,9 +1,10 @@
-"""Packed runs: several independent batched runs (A3C, PPO, ISAR) in one process batch.
+"""Packed runs: several independent batched runs (A3C, PPO, ISAR, SAVN) in one process batch.
 
 A packed group is R *member* trainers, each an ordinary single-run trainer of the same
 algorithm (:class:`~geonav.policy.batched.trainer.BatchedA3CTrainer`,
 :class:`~geonav.policy.batched.ppo.BatchedPPOTrainer`,
-:class:`~geonav.policy.batched.isar.BatchedISARTrainer`) with its own seed, parameters,
+:class:`~geonav.policy.batched.isar.BatchedISARTrainer`,
+:class:`~geonav.policy.batched.savn.BatchedSAVNTrainer`) with its own seed, parameters,
 Adam, random streams, ``batch`` slots (the per-run batch, default 16), run folder,
 callbacks, checkpoints and resume, and one *driver*: an instance of the same algorithm's
 class whose slots are the members' slots side by side (R x B) and whose update is that
@@ -18,6 +19,7 @@ hooks only:
   (exactly the single run's step);
 * the random streams: actions and PPO's minibatch order are drawn from each member's own
   generator, the environment slots are the members' own vector envs;
+  SAVN's learned loss is each member's own (its parameters gathered per slot);
 * the view tables: each run's image part of every view (``view_rows``, ``acting_tables``).
 
 Losses are sums of per-slot terms divided by the per-run batch (PPO: per-run means), so
@@ -29,9 +31,13 @@ stay those of a B-worker A3C (B = 16 is the order of the paper's and SAVN's work
 counts), so episodes-to-convergence stay comparable with the paper's, while the process
 batch is R x B (docs/guide.md, the batched engine).
 
-Not packed: SAVN (its rounds last as long as the longest episode of the batch, so a
-packed round would draw more actions than the run alone), meta-training, the curriculum
-teacher and the previous-altitude view input, and the trainable CNN.
+SAVN's episode-synchronous rounds last as long as the longest episode of the process
+batch, longer than a run's own round would; its slots draw actions only while in their
+episode (``sample_actions(live=...)``), so a member waiting for the others draws nothing
+and its streams stay those of the run alone.
+
+Not packed: meta-training, the curriculum teacher and the previous-altitude view input,
+and the trainable CNN.
 """
 
 from __future__ import annotations
@@ -49,6 +55,7 @@ from geonav.policy.a3c import TrainResult
 from geonav.policy.batched.core import ActingTables, Params, RunParams
 from geonav.policy.batched.isar import BatchedISARTrainer
 from geonav.policy.batched.ppo import BatchedPPOTrainer
+from geonav.policy.batched.savn import BatchedSAVNTrainer
 from geonav.policy.batched.trainer import BatchedA3CTrainer, BatchedTrainer
 from geonav.policy.config import to_dict
 from geonav.vecenv import StepResult
@@ -75,6 +82,11 @@ class StackedVecEnv:
     def target_index(self) -> np.ndarray:
         return np.concatenate([v.target_index for v in self.venvs])
 
+    def reset(self) -> None:
+        """A new episode in every slot, each member's env with its own draws."""
+        for v in self.venvs:
+            v.reset()
+
     def step(self, actions: Any, *, autoreset: bool = True) -> StepResult:
         a = np.asarray(actions).reshape(len(self.venvs), self.per_run)
         parts = [v.step(a[i], autoreset=autoreset) for i, v in enumerate(self.venvs)]
@@ -98,6 +110,11 @@ class StackedRng:
         k = n // len(self.rngs)
         return np.concatenate([g.random(k) for g in self.rngs])
 
+    def random_live(self, live: np.ndarray) -> np.ndarray:
+        """One draw per live row (R * B,), each run's from its own generator."""
+        per = np.asarray(live).reshape(len(self.rngs), -1).sum(1)
+        return np.concatenate([g.random(int(n)) for g, n in zip(self.rngs, per, strict=True)])
+
 
 class _AllViewTables(ActingTables):
     """Acting tables of packed runs: every run's image part of every view, computed at
@@ -120,6 +137,8 @@ class PackedTrainer(BatchedTrainer):
     :meth:`from_members`, never with the trainer constructor."""
 
     members: list[BatchedTrainer]
+    packs_aux = False
+    """True where the driver runs each member's modules beside the policy (SAVN's loss)."""
 
     @classmethod
     def from_members(cls, members: Sequence[BatchedTrainer]) -> PackedTrainer:
@@ -240,9 +259,24 @@ class PackedISAR(BatchedISARTrainer, PackedTrainer):
     """Packed ISAR runs (first or second order)."""
 
 
+class PackedSAVN(BatchedSAVNTrainer, PackedTrainer):
+    """Packed SAVN runs: each member's learned loss on its slots."""
+
+    packs_aux = True
+
+    def aux_module(self) -> torch.nn.Module:
+        return self.members[0].aux["interaction_loss"]
+
+    def loss_params(self) -> tuple[dict[str, torch.Tensor], int | None]:
+        per = [dict(m.aux["interaction_loss"].named_parameters()) for m in self.members]
+        run = torch.arange(self.batch, device=self.device) // self.run_batch
+        return {n: torch.stack([p[n] for p in per])[run] for n in per[0]}, 0
+
+
 PACKED: dict[type, type[PackedTrainer]] = {BatchedA3CTrainer: PackedA3C,
                                            BatchedPPOTrainer: PackedPPO,
-                                           BatchedISARTrainer: PackedISAR}
+                                           BatchedISARTrainer: PackedISAR,
+                                           BatchedSAVNTrainer: PackedSAVN}
 """Single-run trainer class -> its packed driver."""
 
 
@@ -261,7 +295,7 @@ def packing_refusal(members: Sequence[Any]) -> str | None:
         return "packed runs do not take the curriculum teacher or the previous-view input"
     if any(getattr(m.env_factory, "augment", None) is not None for m in members):
         return "imagery randomisation (augment) gives each run its own view tables"
-    if m0.aux:
+    if m0.aux and not PACKED[type(m0)].packs_aux:
         return f"{m0.algorithm} trains modules beside the policy ({sorted(m0.aux)})"
     ref = _shape(m0)
     for m in members[1:]:
@@ -298,5 +332,6 @@ def train_packed(members: Sequence[BatchedTrainer]) -> list[TrainResult]:
     return results
 
 
-__all__ = ["PackedTrainer", "PackedA3C", "PackedPPO", "PackedISAR", "pack", "train_packed",
+__all__ = ["PackedTrainer", "PackedA3C", "PackedPPO", "PackedISAR", "PackedSAVN", "pack",
+           "train_packed",
            "packing_refusal", "check_packable"]

@@ -17,15 +17,20 @@ lock-step, with the graph kept and h never detached:
   slots; its gradient w.r.t. phi and Lambda (Lambda through the second-order path only)
   takes one Adam step.
 
+* with ``bootstrap_on_truncation`` an episode cut by the step cap bootstraps its
+  meta-loss with V(s_T) under its last theta_s, detached, as the reference does.
+
 So each episode is exactly the reference worker's episode (``tests/test_batched_savn.py``
 compares B = 1), and a round's update is the mean of B episodes' meta-gradients. Waiting
-slots cost forward passes: a round lasts as long as its longest episode.
+slots cost forward passes: a round lasts as long as its longest episode. With the
+trainable CNN theta_s adapts the convolutions too (dense per-slot weight changes,
+:class:`~geonav.policy.batched.core.SlotDeltas`): each slot's current view is encoded once
+per step and its target once per segment under its own weights, with the graph.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -33,7 +38,6 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from geonav.errors import ConfigError
 from geonav.policy.batched.core import Adapted, Recorder, factored_step, sample_actions
 from geonav.policy.batched.isar import gram_matrix, values_dtype
 from geonav.policy.batched.teacher import BatchedTeacher, kl_terms
@@ -49,7 +53,6 @@ class BatchedSAVNTrainer(BatchedTrainer):
 
     algorithm = "savn"
     config_key = "savn"
-    adapted_weights = True
     cfg: SAVNConfig
 
     def __init__(self, env_factory: Any, net_cfg: Any = None, cfg: SAVNConfig | None = None,
@@ -87,9 +90,17 @@ class BatchedSAVNTrainer(BatchedTrainer):
 
     def interaction_loss(self, rows: torch.Tensor) -> torch.Tensor:
         """(B, k, H + A) -> (B,) learned losses, the aux module applied per slot."""
-        tcn = self.aux["interaction_loss"]
-        lam: dict[str, torch.Tensor] = dict(tcn.named_parameters())
-        return torch.func.vmap(lambda r: torch.func.functional_call(tcn, lam, (r,)))(rows)
+        tcn = self.aux_module()
+        lam, dim = self.loss_params()
+        return torch.func.vmap(lambda p, r: torch.func.functional_call(tcn, p, (r,)),
+                               in_dims=(dim, 0))(lam, rows)
+
+    def aux_module(self) -> nn.Module:
+        return self.aux["interaction_loss"]
+
+    def loss_params(self) -> tuple[dict[str, torch.Tensor], int | None]:
+        """Lambda, shared by the slots (vmap in_dims None); packed runs: per slot, dim 0."""
+        return dict(self.aux_module().named_parameters()), None
 
     def update(self) -> tuple[list[dict[str, Any]], dict[str, float]]:
         cfg, e, dev, b = self.cfg, self.net_cfg.embed_dim, self.device, self.batch
@@ -103,9 +114,11 @@ class BatchedSAVNTrainer(BatchedTrainer):
         inner = np.zeros(b, np.int64)
         logits, values, actions, rewards, ends, masks = [], [], [], [], [], []
         finals: list[dict[str, Any]] = []
-        assert self.table is not None
+        lc = cfg.loss
+        end_values = [] if lc.bootstrap_on_truncation else None
         t = 0
         rec = Recorder(gram=self.gram)
+        tgt_f: torch.Tensor | None = None  # the targets' features under the current theta
         hs: list[torch.Tensor] = []
         kls: list[torch.Tensor] = []
         # the curriculum teacher's lambda of each slot's episode (numbered in slot order)
@@ -115,14 +128,27 @@ class BatchedSAVNTrainer(BatchedTrainer):
             vi, ti = self.slot_indices()
             tlogp = self.teacher.step(vi, ti, torch.full((b,), t == 0, device=dev)) \
                 if self.teacher is not None else None
-            logit, value, state = factored_step(params, e, self.table[vi], self.table[ti],
-                                                state, adapted, rec, None, vi, ti,
+            if tgt_f is None:
+                tgt_f = self.slot_views(params, adapted, ti, rec)
+            logit, value, state = factored_step(params, e, self.slot_views(params, adapted, vi,
+                                                                           rec),
+                                                tgt_f, state, adapted, rec, None, vi, ti,
                                                 self.prev_features(vi))
             hs.append(state[0])
             if tlogp is not None and lam is not None:  # lambda KL(pi_T || pi_theta), (B,)
                 kls.append(kl_terms(tlogp[None].to(dtype), logit[None])[0] * lam)
-            a = sample_actions(logit, self.rng).to(dev)
+            a = sample_actions(logit, self.rng, alive).to(dev)  # draws for live slots only
             res = venv.step(a.cpu().numpy(), autoreset=False)
+            if end_values is not None:  # V(s_T) under theta_s at a truncation, detached
+                end_values.append(np.zeros(b))
+                if (res.truncated & alive).any():
+                    with torch.no_grad():
+                        fv = torch.from_numpy(res.final_view).to(dev)
+                        _, v_end, _ = factored_step(params, e, self.slot_views(params, adapted,
+                                                                               fv),
+                                                    tgt_f, state, adapted, None, None, fv, ti,
+                                                    self.prev_features(fv))
+                    end_values[-1] = np.where(res.truncated & alive, v_end.cpu().numpy(), 0.0)
             logits.append(logit)
             values.append(value)
             actions.append(a)
@@ -149,29 +175,31 @@ class BatchedSAVNTrainer(BatchedTrainer):
                                                 create_graph=cfg.second_order, weights=w)
                     inner += can
                 rec = Recorder(gram=self.gram)
+                tgt_f = None
         mask = torch.stack(masks)
         ends_np = np.stack(ends)
         lg, vs, acts = torch.stack(logits), torch.stack(values), torch.stack(actions)
-        lc = cfg.loss
-        if lc.bootstrap_on_truncation:
-            raise ConfigError("bootstrap_on_truncation is implemented for SAVN on engine = "
-                              "'async' only")
         ret, adv = gae_returns(np.stack(rewards), vs.detach().to("cpu", torch.float64).numpy(),
-                               np.zeros(b), ends_np, lc.gamma, lc.tau)
-        terms = policy_value_terms(lg, vs, acts, torch.from_numpy(ret).to(dev, dtype),
-                                   torch.from_numpy(adv).to(dev, dtype), lc, weights=mask)
+                               np.zeros(b), ends_np, lc.gamma, lc.tau,
+                               None if end_values is None else np.stack(end_values))
+        ret_t, adv_t = torch.from_numpy(ret).to(dev, dtype), torch.from_numpy(adv).to(dev, dtype)
+        weights = [mask if m is None else mask * m for m in self.run_masks(mask)]
+        runs = [policy_value_terms(lg, vs, acts, ret_t, adv_t, lc, weights=w)
+                for w in weights]  # one run; one per run when packed
+        total = torch.stack([r.total for r in runs]).sum()
         if kls:
-            terms = replace(terms, total=terms.total + (torch.stack(kls) * mask).sum())
-        bf = float(b)
-        self.step_optimizer(terms.total / bf)
+            total = total + (torch.stack(kls) * mask).sum()
+        bf = float(self.run_batch)
+        self.step_optimizer(total / bf)
         self.fresh = torch.ones(b, dtype=torch.bool, device=dev)
         for f in finals:
             f["t0"] = float(self.t_episode[f["slot"]])
         self.next_round()
         self.t_episode[:] = time.perf_counter()
-        out = LossTerms(terms.total / bf, terms.policy / bf, terms.value / bf,
-                        terms.entropy / bf)
-        return finals, loss_stats(out, int(mask.sum()) // b)
+        stats = [loss_stats(LossTerms(r.total / bf, r.policy / bf, r.value / bf,
+                                      r.entropy / bf), int(w.sum()) // self.run_batch)
+                 for r, w in zip(runs, weights, strict=True)]
+        return finals, stats[0] if len(stats) == 1 else stats
 
 
 __all__ = ["BatchedSAVNTrainer"]

@@ -40,9 +40,13 @@ from geonav.errors import ConfigError
 from geonav.policy.a3c import A3CTrainer, TrainResult
 from geonav.policy.batched.core import (
     ActingTables,
+    Adapted,
     Params,
+    Recorder,
     check_supported,
     core_step,
+    encode_slots,
+    encoder_weights,
     reset_state,
     sample_actions,
     sequence_forward,
@@ -113,8 +117,8 @@ class BatchedTrainer(A3CTrainer):
     prev_view_spec: Any = None
     """The curriculum's option B source (:class:`geonav.policy.teacher.PrevViewSpec`):
     the extra input slot gets the view at the slot's cell at the previous altitude."""
-    adapted_weights = False
-    """True for learners with per-episode adapted weights (needs a frozen encoder)."""
+    per_slot_parameters = False
+    """True for learners with stacked per-slot parameters (needs a frozen encoder)."""
 
     def __init__(self, env_factory: Any, net_cfg: Any = None, cfg: Any = None, *,
                  batch: int = DEFAULT_BATCH, device: str | torch.device | None = "cpu",
@@ -128,7 +132,7 @@ class BatchedTrainer(A3CTrainer):
         self.device = resolve_device(device)
         kwargs.pop("mp_context", None)
         super().__init__(env_factory, net_cfg, cfg, **kwargs)
-        check_supported(self.model, adapted=self.adapted_weights)
+        check_supported(self.model, per_slot_parameters=self.per_slot_parameters)
         # Adam state follows the parameters to the device (load_state_dict casts it).
         opt_state = self.optimizer.state_dict()
         self.model.to(self.device)
@@ -200,7 +204,7 @@ class BatchedTrainer(A3CTrainer):
             torch.set_rng_state(st["torch"])
             self.rng.bit_generator.state = st["numpy"]
             self.venv.np_random.bit_generator.state = st["env"]
-        self.venv.reset()
+        self.reset_venv()
         dtype = next(self.model.parameters()).dtype
         self.prev_table = None
         if self.prev_view_spec is not None:
@@ -226,6 +230,10 @@ class BatchedTrainer(A3CTrainer):
         such as the curriculum teacher's lambda, read it)."""
         self.next_episode = self.start_episode + 1 + b
 
+    def reset_venv(self) -> None:
+        """A new episode in every slot (meta-training draws its task visits' starts)."""
+        self.venv.reset()
+
     def rng_snapshot(self) -> dict[str, Any]:
         return {"engine": "batched", "torch": torch.get_rng_state(),
                 "numpy": self.rng.bit_generator.state,
@@ -237,6 +245,37 @@ class BatchedTrainer(A3CTrainer):
             return self.table[rows]
         assert self.images is not None
         return self.model.features(self.images[rows])
+
+    def slot_views(self, params: Params, adapted: Adapted | None, rows: torch.Tensor,
+                   rec: Recorder | None = None, slots: torch.Tensor | None = None
+                   ) -> torch.Tensor:
+        """(n, F) features of one view per slot under the slots' adapted weights (ISAR,
+        SAVN): ``rows`` (n,) the views of ``slots`` (default: all B, in order). The frozen
+        table's rows; or the trainable CNN, each slot's view encoded with its own weights
+        (:func:`~geonav.policy.batched.core.encode_slots`, with graph), the weights
+        recorded in ``rec`` for the inner gradients."""
+        if self.table is not None:
+            return self.table[rows]
+        assert self.images is not None and self.model.encoder is not None
+        w = encoder_weights(params, adapted, self.batch)
+        if rec is not None:
+            rec.add_encoder(w)
+        if slots is not None:
+            w = {k: v[slots] for k, v in w.items()}
+        return encode_slots(self.model.encoder, w, self.images[rows].unsqueeze(1))[:, 0]
+
+    def slot_targets(self, params: Params, adapted: Adapted | None, target_idx: torch.Tensor,
+                     rec: Recorder | None, last: torch.Tensor | None) -> torch.Tensor:
+        """(B, F) target features as :meth:`slot_views`. With the trainable CNN each slot's
+        target is encoded once per weights: ``last`` (this step's weights, or None) is
+        kept for the slots that do not begin a new episode at this step."""
+        if self.table is not None or last is None:
+            return self.slot_views(params, adapted, target_idx, rec)
+        if not bool(self.fresh.any()):
+            return last
+        idx = self.fresh.nonzero()[:, 0]
+        return last.index_put((idx,), self.slot_views(params, adapted, target_idx[idx], rec,
+                                                      idx))
 
     def prev_features(self, rows: torch.Tensor) -> torch.Tensor | None:
         """(n, F) features of the previous-altitude views at view indices, or None (the
@@ -251,6 +290,15 @@ class BatchedTrainer(A3CTrainer):
     def run_slices(self) -> list[slice]:
         """The slot columns of each run: one run here, R in a packed driver."""
         return [slice(None)]
+
+    def run_masks(self, like: torch.Tensor) -> list[torch.Tensor | None]:
+        """Per-run step weights shaped like ``like`` (T, B): [None] for one run; one 0/1
+        mask of each run's slot columns when packed (per-run losses and figures)."""
+        slices = self.run_slices()
+        if len(slices) == 1:
+            return [None]
+        cols = torch.arange(like.shape[1], device=like.device)
+        return [torch.zeros_like(like).index_fill_(1, cols[s], 1.0) for s in slices]
 
     def run_rngs(self) -> list[np.random.Generator]:
         """The random streams of the runs, in slot order (one here; one per packed run)."""
