@@ -22,6 +22,9 @@ CASES = {
                                          minibatches=2, max_grad_norm=0.05)),
     "isar": (BatchedISARTrainer, ISARConfig(episodes=10, n_steps=2, k_segments=2, lr=3e-3,
                                             alpha=0.1, max_grad_norm=0.05)),
+    "isar-ppo": (BatchedISARTrainer, ISARConfig(episodes=10, n_steps=2, k_segments=2, lr=3e-3,
+                                                alpha=0.1, max_grad_norm=0.05,
+                                                base_loss="ppo", ppo_epochs=2)),
 }
 
 
