@@ -4,6 +4,7 @@ from dataclasses import replace
 
 import pytest
 import torch
+from batched_helpers import float64
 
 from geonav.errors import ConfigError
 from geonav.policy.batched.isar import BatchedISARTrainer
@@ -26,15 +27,6 @@ CASES = {
                                                 alpha=0.1, max_grad_norm=0.05,
                                                 base_loss="ppo", ppo_epochs=2)),
 }
-
-
-def float64(trainer):
-    """The trainer's network and Adam in float64 (the frozen encoder stays float32; its
-    feature table is cast to the network's dtype)."""
-    trainer.model.double()
-    trainer.params_list = list(trainer.model.parameters())
-    trainer.optimizer = trainer.build_optimizer(trainer.params_list)
-    return trainer
 
 
 @pytest.mark.parametrize("algo", sorted(CASES))
