@@ -105,7 +105,10 @@ class BatchedISARTrainer(BatchedTrainer):
         ppo = cfg.base_loss == "ppo"
         rec = Recorder(gram=self.gram)
         logits, values, actions, tlogp, lams = [], [], [], [], []
-        views, targets, starts, done_at = [], [], [], []
+        views: list[torch.Tensor] = []
+        targets: list[torch.Tensor] = []
+        starts: list[torch.Tensor] = []
+        done_at: list[torch.Tensor | None] = []
         rewards = np.zeros((n, b))
         ends = np.zeros((n, b), bool)
         end_values = np.zeros((n, b)) if cfg.loss.bootstrap_on_truncation else None
@@ -185,7 +188,9 @@ class BatchedISARTrainer(BatchedTrainer):
             assert d.kl_weights is not None  # lambda of each episode (N, B)
             kl = kl_terms(d.teacher_logprobs, logits) * d.kl_weights
             total = total + kl.sum()
-            mine = replace(mine, total=mine.total + (kl * d.weights[-1]).sum())
+            current = d.weights[-1]
+            assert current is not None
+            mine = replace(mine, total=mine.total + (kl * current).sum())
         return total, runs, mine
 
     def replay_segment(self, params: Any, adapted: Adapted, state: Any, d: SegmentData
