@@ -19,7 +19,7 @@ An RL learner sees far less supervision than this, so the scene-B figure bounds 
 meta-training on A can give a policy on B before fine-tuning (docs/learning.md §6).
 ``--encoder corr`` puts the frozen correlation encoder (each view's normalised
 cross-correlation with the target view, ``NetConfig(encoder='corr')``) in front of the
-same embeddings and FC layer instead of the trainable CNN (docs/learning.md §7).
+same embeddings and FC layer instead of the trainable CNN (docs/learning.md §8).
 """
 
 from __future__ import annotations

@@ -6,6 +6,18 @@ import torch
 from geonav.policy.evaluation import RandomAgent, evaluate
 
 
+def float64(trainer):
+    """The trainer's network (and SAVN's learned loss) and Adam in float64 (the frozen
+    encoder stays float32; its feature table is cast to the network's dtype)."""
+    trainer.model.double()
+    trainer.params_list = list(trainer.model.parameters())
+    for m in getattr(trainer, "aux", {}).values():
+        m.double()
+        trainer.params_list += list(m.parameters())
+    trainer.optimizer = trainer.build_optimizer(trainer.params_list)
+    return trainer
+
+
 def all_starts(env):
     u = env.unwrapped
     return [(ti, c) for ti in range(len(u.tasks)) for c in u.start_cells(ti)]

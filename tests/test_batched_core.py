@@ -22,7 +22,12 @@ from geonav.policy.batched.core import (
 )
 from geonav.policy.config import LossConfig
 from geonav.policy.functional import sgd_step
-from geonav.policy.losses import actor_critic_loss, gae_returns, policy_value_terms
+from geonav.policy.losses import (
+    actor_critic_loss,
+    gae_returns,
+    policy_value_terms,
+    returns_and_advantages,
+)
 from geonav.policy.model import ActorCritic
 from geonav.policy.testing import tiny_net
 
@@ -171,17 +176,23 @@ def _window_data(model, table, b, n_steps, k_segs, seed):
     return views, targets, actions, rewards, _state(model, b, g)
 
 
-def _batched_segment_loss(logits, values, actions, rewards, bootstrap):
+def _batched_segment_loss(logits, values, actions, rewards, bootstrap, old=None):
     ret, adv = gae_returns(rewards.numpy(), values.detach().numpy(), bootstrap.numpy(), None,
                            LOSS.gamma, LOSS.tau)
     return policy_value_terms(logits, values, actions, torch.from_numpy(ret),
-                              torch.from_numpy(adv), LOSS).total
+                              torch.from_numpy(adv), LOSS, old_log_probs=old).total
+
+
+def _log_pi(logits, actions):
+    return torch.log_softmax(logits, -1).gather(-1, actions.unsqueeze(-1)).squeeze(-1)
 
 
 def _batched_window(model, table, data, n_steps, k_segs, alpha, second_order, record=None,
-                    gram=False):
+                    gram=False, old=None, logps=None):
     """phi -> K segments of N steps with an inner step per segment but the last, per slot;
-    returns the window loss summed over slots (graph to phi)."""
+    returns the window loss summed over slots (graph to phi). ``old``: per segment the
+    (N, B) acting log-probs of ISAR's PPO base (None: the A3C base); ``logps`` collects
+    each segment's detached log pi(a_t)."""
     views, targets, actions, rewards, state = data
     params = dict(model.named_parameters())
     adapted = {}
@@ -207,7 +218,10 @@ def _batched_window(model, table, data, n_steps, k_segs, alpha, second_order, re
                                          state, adapted, None, None, nxt if gram else None,
                                          targets if gram else None)
             v_next = v_next[None]
-        loss = _batched_segment_loss(logits, values, actions[sl], rewards[sl], v_next[0])
+        if logps is not None:
+            logps.append(_log_pi(logits, actions[sl]).detach())
+        loss = _batched_segment_loss(logits, values, actions[sl], rewards[sl], v_next[0],
+                                     None if old is None else old[k])
         total = total + loss
         if k < k_segs - 1:
             adapted = rec.inner_factors(loss, adapted, alpha, create_graph=second_order)
@@ -216,7 +230,7 @@ def _batched_window(model, table, data, n_steps, k_segs, alpha, second_order, re
     return total
 
 
-def _ref_window(model, table, data, n_steps, k_segs, alpha, second_order):
+def _ref_window(model, table, data, n_steps, k_segs, alpha, second_order, old=None):
     """The same per slot with functional_call and explicitly adapted parameters."""
     views, targets, actions, rewards, state = data
     phi = dict(model.named_parameters())
@@ -231,8 +245,14 @@ def _ref_window(model, table, data, n_steps, k_segs, alpha, second_order):
             with torch.no_grad():
                 _, v_next, _ = _ref_slot(model, theta, table,
                                          views[sl.stop % views.shape[0], s][None], targets[s], st)
-            loss = actor_critic_loss(lg, v, actions[sl, s], rewards[sl, s], float(v_next[0]),
-                                     LOSS).total
+            if old is None:
+                loss = actor_critic_loss(lg, v, actions[sl, s], rewards[sl, s],
+                                         float(v_next[0]), LOSS).total
+            else:  # ISAR's PPO base: the clipped surrogate against the acting log-probs
+                ret, adv = returns_and_advantages(rewards[sl, s], v, float(v_next[0]),
+                                                  LOSS.gamma, LOSS.tau)
+                loss = policy_value_terms(lg, v, actions[sl, s], ret, adv, LOSS,
+                                          old_log_probs=old[k][:, s]).total
             total = total + loss
             if k < k_segs - 1:
                 theta = sgd_step(theta, loss, alpha, create_graph=second_order)
@@ -292,6 +312,30 @@ def test_window_gradient_equals_functional_call(request, b, second_order, gram, 
     if second_order:  # the second-order terms matter at this alpha: first order differs
         fo = torch.autograd.grad(_batched_window(model, table, data, 2, 3, 0.3, False), phi)
         assert max(float((x - y).abs().max()) for x, y in zip(fo, got, strict=True)) > 1e-6
+
+
+@pytest.mark.parametrize("b,second_order", [(1, True), (5, True), (1, False), (5, False)])
+def test_ppo_base_window_gradient_equals_functional_call(setup, b, second_order):
+    """ISAR's PPO base (docs/learning.md): the window gradient w.r.t. phi, second and
+    first order, with acting log-probs off the current ones by up to 0.3 in log (a pass
+    after the first: ratios away from 1, some clipped at eps = 0.2)."""
+    model, table = setup
+    data = _window_data(model, table, b, 2, 3, seed=40 + b)
+    phi = list(model.parameters())
+    logps = []
+    _batched_window(model, table, data, 2, 3, 0.3, False, logps=logps)
+    g = torch.Generator().manual_seed(b)
+    old = [lp + 0.6 * (torch.rand(lp.shape, generator=g, dtype=torch.float64) - 0.5)
+           for lp in logps]
+    got = torch.autograd.grad(_batched_window(model, table, data, 2, 3, 0.3, second_order,
+                                              old=old), phi)
+    ref_loss, _ = _ref_window(model, table, data, 2, 3, 0.3, second_order, old=old)
+    ref = torch.autograd.grad(ref_loss, phi)
+    for a, r in zip(got, ref, strict=True):
+        torch.testing.assert_close(a, r, atol=TOL, rtol=TOL)
+    a3c = torch.autograd.grad(_batched_window(model, table, data, 2, 3, 0.3, second_order),
+                              phi)  # the surrogate away from ratio 1 is another gradient
+    assert max(float((x - y).abs().max()) for x, y in zip(a3c, got, strict=True)) > 1e-6
 
 
 def test_masked_gae_equals_per_episode_segments():

@@ -4,6 +4,7 @@ from dataclasses import replace
 
 import pytest
 import torch
+from batched_helpers import float64
 
 from geonav.errors import ConfigError
 from geonav.policy.batched.isar import BatchedISARTrainer
@@ -25,19 +26,10 @@ CASES = {
                                             alpha=0.1, max_grad_norm=0.05)),
     "savn": (BatchedSAVNTrainer, SAVNConfig(episodes=10, k_steps=2, inner_steps=2, lr=3e-3,
                                             inner_lr=0.1, max_grad_norm=0.05)),
+    "isar-ppo": (BatchedISARTrainer, ISARConfig(episodes=10, n_steps=2, k_segments=2, lr=3e-3,
+                                                alpha=0.1, max_grad_norm=0.05,
+                                                base_loss="ppo", ppo_epochs=2)),
 }
-
-
-def float64(trainer):
-    """The trainer's network (and SAVN's learned loss) and Adam in float64 (the frozen
-    encoder stays float32; its feature table is cast to the network's dtype)."""
-    trainer.model.double()
-    trainer.params_list = list(trainer.model.parameters())
-    for m in trainer.aux.values():
-        m.double()
-        trainer.params_list += list(m.parameters())
-    trainer.optimizer = trainer.build_optimizer(trainer.params_list)
-    return trainer
 
 
 def all_params(trainer):

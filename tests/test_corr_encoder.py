@@ -122,7 +122,7 @@ def corner_targets_factory(seed, targets, cells=5, max_steps=10):
 
 @pytest.mark.slow
 def test_a_policy_trained_on_one_scene_navigates_another():
-    """What the encoder is for (docs/learning.md §7): PPO trained on 20 targets of a 5 x 5
+    """What the encoder is for (docs/learning.md §8): PPO trained on 20 targets of a 5 x 5
     lattice of one textured scene reaches the 5 other targets on a scene it never saw,
     greedily, from most starts, where the random CNN's features at the same budget do not
     carry over. (Each evaluation clears the encoder's cache: its keys are (task index,

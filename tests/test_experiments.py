@@ -8,6 +8,7 @@ import signal
 import subprocess
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -311,3 +312,37 @@ methods = ["wild"]
     edited["stages"]["wild"]["lr"] = 0.01  # the part's own stage: refused to resume
     mine = parse_config(edited, "mine")
     assert _experiment_part(cfg.to_dict(), stages) != _experiment_part(mine.to_dict(), stages)
+
+
+def test_isar_base_loss_stage_option(tmp_path):
+    """ISAR's base_loss (docs/learning.md) is checked when the config is read, and the
+    paper's isar_ppo_one stage builds isar_one's ISARConfig with the PPO base."""
+    from geonav.experiments.stages import _algo_cfg
+
+    base = {"scenes": {"A": {"synthetic": "residential"}}, "tasks": {"t": {"scene": "A"}}}
+
+    def stage(**opts):
+        return parse_config({**base, "stages": {"s": {"mode": "train", "tasks": "t",
+                                                      "algo": "isar", **opts}}})
+
+    assert stage(base_loss="ppo", ppo_epochs=2).stages["s"].options["base_loss"] == "ppo"
+    with pytest.raises(ConfigError, match=r"base_loss = 'sac': use one of \('a3c', 'ppo'\)"):
+        stage(base_loss="sac")
+    with pytest.raises(ConfigError, match="base_loss is an ISAR option"):
+        parse_config({**base, "stages": {"s": {"mode": "train", "tasks": "t", "algo": "a3c",
+                                               "base_loss": "ppo"}}})
+    with pytest.raises(ConfigError, match="implemented for mode 'train'"):
+        parse_config({**base, "stages": {"s": {"mode": "meta-train", "tasks": "t",
+                                               "algo": "isar", "base_loss": "ppo"}}})
+    paper = load_config(Path(__file__).resolve().parent.parent / "configs" / "paper.toml")
+    assert paper.stages_for(["isar-ppo"])
+    cfgs = {}
+    for key in ("isar_one", "isar_ppo_one"):
+        st = paper.stages[key]
+        cfg, net, rest = _algo_cfg({"algo": st.algo, "options": {**st.options,
+                                                                 "obs_size_px": 84},
+                                    "episodes": st.episodes, "workers": st.workers,
+                                    "seed": 0, "tasks": None})
+        cfgs[key] = cfg
+    assert cfgs["isar_ppo_one"].base_loss == "ppo" and cfgs["isar_one"].base_loss == "a3c"
+    assert replace(cfgs["isar_ppo_one"], base_loss="a3c") == cfgs["isar_one"]

@@ -93,3 +93,26 @@ def test_stage_trainers(files, tmp_path, mode, algo):
         _, episodes, _ = TRAINERS[(mode, algo)](p, factory, [],
                                                 str(tmp_path / "u/checkpoints/latest.pt"))
         assert episodes == 4
+
+
+def test_train_isar_base_loss_option(files, tmp_path, capsys):
+    """`geonav train --algo isar` exposes ISARConfig's base_loss, clip_coef and ppo_epochs
+    (help from the fields' docstrings); the async engine refuses the PPO base."""
+    from geonav.errors import ConfigError
+
+    with pytest.raises(SystemExit):
+        _run(["train", "--help"])
+    out = " ".join(capsys.readouterr().out.split())
+    assert "--base-loss {a3c,ppo}" in out and "clipped surrogate" in out
+    assert "--ppo-epochs" in out and "--clip-coef" in out
+    scene, tasks = files
+    run = tmp_path / "run"
+    base = ["train", "--algo", "isar", "--scene", str(scene), "--tasks", str(tasks),
+            "--out", str(run), "--obs-size", "32", "--encoder", "random", "--no-progress",
+            "--base-loss", "ppo", "--ppo-epochs", "2", "--clip-coef", "0.1"]
+    assert _run(base + ["--episodes", "3", "--batch", "2"]) == 0
+    config = json.loads((run / "config.json").read_text())
+    assert config["isar"]["base_loss"] == "ppo" and config["isar"]["ppo_epochs"] == 2
+    assert config["isar"]["clip_coef"] == 0.1 and config["engine"]["name"] == "batched"
+    with pytest.raises(ConfigError, match="batched engine only"):
+        _run(base + ["--episodes", "3", "--engine", "async", "--out", str(tmp_path / "a")])

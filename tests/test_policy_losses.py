@@ -9,7 +9,7 @@ import torch
 
 from geonav.policy.a3c import Rollout, rollout_loss
 from geonav.policy.config import A3CConfig, LossConfig, NetConfig
-from geonav.policy.losses import actor_critic_loss, returns_and_advantages
+from geonav.policy.losses import actor_critic_loss, policy_value_terms, returns_and_advantages
 from geonav.policy.model import ActorCritic
 
 LN4 = math.log(4.0)
@@ -98,3 +98,52 @@ def test_batched_recompute_equals_per_step_graph(encoder, bootstrap):
     params = {k: v.detach().clone().requires_grad_() for k, v in model.named_parameters()}
     func = rollout_loss(model, ro, bootstrap, A3CConfig(), params=params)
     assert func.total.item() == pytest.approx(fast.total.item(), rel=1e-6)
+
+
+def _ppo_case(seed=0, T=6, B=4, A=4):
+    g = torch.Generator().manual_seed(seed)
+    logits = torch.randn(T, B, A, generator=g, dtype=torch.float64, requires_grad=True)
+    values = torch.randn(T, B, generator=g, dtype=torch.float64, requires_grad=True)
+    actions = torch.randint(0, A, (T, B), generator=g)
+    returns = torch.randn(T, B, generator=g, dtype=torch.float64)
+    adv = torch.randn(T, B, generator=g, dtype=torch.float64)
+    weights = torch.rand(T, B, generator=g, dtype=torch.float64)
+    log_pi = torch.log_softmax(logits, -1).gather(-1, actions.unsqueeze(-1)).squeeze(-1)
+    return logits, values, actions, returns, adv, weights, log_pi.detach(), g
+
+
+def test_ppo_surrogate_gradient_is_the_a3c_term_at_ratio_one():
+    """ISAR's PPO base on its first pass: the acting log-probs are the current ones, the
+    ratio is 1 and the clipped surrogate's gradient is the A3C policy-gradient term's
+    -A grad log pi (float64; values and entropy are the same terms in both)."""
+    logits, values, actions, returns, adv, w, old, _ = _ppo_case()
+    cfg = LossConfig()
+    a3c = policy_value_terms(logits, values, actions, returns, adv, cfg, weights=w)
+    ppo = policy_value_terms(logits, values, actions, returns, adv, cfg, weights=w,
+                             old_log_probs=old, clip_coef=0.2)
+    # the values differ (-rho A = -A against -A log pi), the gradients do not
+    assert float(ppo.total.detach()) == pytest.approx(
+        float(a3c.total.detach() + (w * adv * (old - 1.0)).sum()), rel=1e-12)
+    ga = torch.autograd.grad(a3c.total, (logits, values))
+    gp = torch.autograd.grad(ppo.total, (logits, values))
+    for a, b in zip(ga, gp, strict=True):
+        torch.testing.assert_close(b, a, atol=1e-12, rtol=1e-12)
+
+
+def test_ppo_surrogate_gradient_where_clipped_and_not():
+    """Away from ratio 1: -rho A grad log pi where the clip is inactive, 0 where it is
+    active (rho > 1 + eps with A > 0, rho < 1 - eps with A < 0); the A3C term with the
+    advantages so rescaled has the same gradient (float64)."""
+    logits, values, actions, returns, adv, w, lp, g = _ppo_case(seed=1)
+    old = lp + 0.8 * (torch.rand(lp.shape, generator=g, dtype=torch.float64) - 0.5)
+    rho = (lp - old).exp()
+    clipped = ((rho > 1.2) & (adv > 0)) | ((rho < 0.8) & (adv < 0))
+    assert 0 < int(clipped.sum()) < clipped.numel()
+    cfg = LossConfig()
+    ppo = policy_value_terms(logits, values, actions, returns, adv, cfg, weights=w,
+                             old_log_probs=old, clip_coef=0.2)
+    like = policy_value_terms(logits, values, actions, returns,
+                              torch.where(clipped, 0.0, rho * adv), cfg, weights=w)
+    for a, b in zip(torch.autograd.grad(like.total, (logits, values)),
+                    torch.autograd.grad(ppo.total, (logits, values)), strict=True):
+        torch.testing.assert_close(b, a, atol=1e-12, rtol=1e-12)

@@ -378,6 +378,8 @@ def _check(cfg: ExperimentConfig) -> None:
             from geonav.augment import AugmentConfig
 
             AugmentConfig.from_dict(st.options["augment"], f"[stages.{st.name}] augment")
+        if "base_loss" in st.options:  # ISAR's base loss, checked before any unit runs
+            _check_base_loss(st)
     for key in cfg.stages:  # no cycles
         seen, cur = set(), key
         while cur is not None:
@@ -390,6 +392,21 @@ def _check(cfg: ExperimentConfig) -> None:
         if missing:
             raise ConfigError(f"[[compare]] {c.name!r}: methods {missing} are not stages")
     check_noise(cfg)
+
+
+def _check_base_loss(st: StageSpec) -> None:
+    from geonav.policy.meta_config import BASE_LOSSES
+
+    value = st.options["base_loss"]
+    if st.algo != "isar":
+        raise ConfigError(f"[stages.{st.name}] base_loss is an ISAR option (algo = 'isar'), "
+                          f"not {st.algo}'s")
+    if value not in BASE_LOSSES:
+        raise ConfigError(f"[stages.{st.name}] base_loss = {value!r}: use one of "
+                          f"{BASE_LOSSES}")
+    if value != "a3c" and st.mode != "train":
+        raise ConfigError(f"[stages.{st.name}] base_loss = {value!r} is implemented for mode "
+                          f"'train' (batched engine), not {st.mode!r}")
 
 
 def check_noise(cfg: ExperimentConfig, random_walk_sr: dict[str, float] | None = None) -> None:

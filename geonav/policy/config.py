@@ -26,7 +26,7 @@ class NetConfig:
     cached features; tests and benchmarks), 'resnet18' (frozen, needs geonav[resnet]) or
     'corr' (frozen and parameter-free: each view's features are its normalised
     cross-correlation with the episode's target view over ``corr_radius`` shifts; beyond
-    the paper, see docs/learning.md §7)."""
+    the paper, see docs/learning.md §8)."""
     encoder_weights: str | None = None
     """ResNet18 weights: a local state_dict file; None downloads torchvision's pretrained ones."""
     obs_size_px: int = 84

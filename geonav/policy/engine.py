@@ -11,7 +11,7 @@ partial-window flush; the previous-altitude view input outside ISAR and SAVN;
 meta-training with the ISAR or A3C base and the trainable CNN), :func:`resolve` falls
 back to the async trainer, logs a warning and says so in the returned reason, which
 the trainers record in config.json.
-PPO exists on the batched engine only.
+PPO, and ISAR with ``base_loss = "ppo"``, exist on the batched engine only.
 """
 
 from __future__ import annotations
@@ -61,8 +61,12 @@ def resolve(algo: str, engine: str = "batched", net_cfg: Any = None, cfg: Any = 
         raise ConfigError(f"engine must be one of {ENGINES}, not {engine!r}")
     if algo not in ALGOS:
         raise ConfigError(f"algo must be one of {ALGOS}, not {algo!r}")
+    ppo_base = algo == "isar" and getattr(cfg, "base_loss", "a3c") == "ppo"
     if engine == "batched":
         reason = _fallback_reason(algo, net_cfg, cfg, teacher, prev_view)
+        if reason is not None and ppo_base:
+            raise ConfigError(f"ISAR with base_loss = 'ppo' runs on the batched engine only, "
+                              f"and {reason}")
         if reason is None:
             from geonav.policy.batched.isar import BatchedISARTrainer
             from geonav.policy.batched.ppo import BatchedPPOTrainer
@@ -77,6 +81,10 @@ def resolve(algo: str, engine: str = "batched", net_cfg: Any = None, cfg: Any = 
         log.warning("engine 'batched': %s; running %s on engine 'async'", reason, algo)
     elif algo == "ppo":
         raise ConfigError("PPO exists on the batched engine only; use engine = 'batched'")
+    elif ppo_base:
+        from geonav.policy.meta_config import PPO_BASE_ASYNC
+
+        raise ConfigError(PPO_BASE_ASYNC)
     else:
         reason = None
     from geonav.policy.a3c import A3CTrainer
@@ -123,6 +131,9 @@ def build_meta_trainer(algo: str, engine: str, env_factory: Any, net_cfg: Any, b
         raise ConfigError(f"engine must be one of {ENGINES}, not {engine!r}")
     if algo not in ("a3c", "savn", "isar"):
         raise ConfigError(f"meta-training base must be one of a3c, isar, savn, not {algo!r}")
+    from geonav.policy.meta_config import PPO_BASE_META, check_a3c_base
+
+    check_a3c_base(base_cfg, PPO_BASE_META)
     reason = None
     if engine == "batched":
         if net_cfg is None and kwargs.get("resume") is not None:

@@ -46,7 +46,7 @@ from geonav.policy.functional import (
     teacher_kl,
 )
 from geonav.policy.losses import actor_critic_loss
-from geonav.policy.meta_config import ISARConfig
+from geonav.policy.meta_config import PPO_BASE_ASYNC, ISARConfig, check_a3c_base
 from geonav.policy.model import detach_state
 
 
@@ -272,6 +272,7 @@ class ISARTrainer(A3CTrainer):
                  *, teacher: Any = None, prev_view: Any = None, **kwargs: Any) -> None:
         self.teacher_spec = teacher
         self.prev_view_spec = prev_view
+        check_a3c_base(cfg, PPO_BASE_ASYNC)
         super().__init__(env_factory, net_cfg, cfg if cfg is not None else ISARConfig(),
                          **kwargs)
         check_prev_view(self.net_cfg, prev_view)

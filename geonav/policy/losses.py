@@ -101,21 +101,52 @@ def returns_and_advantages(rewards: Sequence[float] | torch.Tensor, values: torc
             torch.from_numpy(advantages[:, 0]).to(values.dtype))
 
 
+def clipped_surrogate(log_pi_a: torch.Tensor, old_log_pi_a: torch.Tensor,
+                      advantages: torch.Tensor, clip_coef: float) -> torch.Tensor:
+    """PPO's per-step clipped surrogate loss (Schulman et al. 2017, Eq. 7, negated):
+    -min(rho A, clip(rho, 1 - eps, 1 + eps) A), rho = exp(log pi(a) - log pi_old(a)).
+
+    Its gradient is -rho A grad log pi(a) where the clip is inactive, 0 where it is
+    active; at rho = 1 (the policy that acted) it is the A3C term -A grad log pi(a).
+
+    Args:
+        log_pi_a: (...) log pi(a_t | s_t) with graph.
+        old_log_pi_a: (...) the acting policy's log pi_old(a_t | s_t), constants.
+        advantages: (...) constants; clip_coef: epsilon.
+    """
+    ratio = (log_pi_a - old_log_pi_a).exp()
+    return torch.max(-advantages * ratio,
+                     -advantages * ratio.clamp(1.0 - clip_coef, 1.0 + clip_coef))
+
+
 def policy_value_terms(logits: torch.Tensor, values: torch.Tensor, actions: torch.Tensor,
                        returns: torch.Tensor, advantages: torch.Tensor, cfg: LossConfig,
-                       weights: torch.Tensor | None = None) -> LossTerms:
+                       weights: torch.Tensor | None = None,
+                       old_log_probs: torch.Tensor | None = None,
+                       clip_coef: float = 0.2) -> LossTerms:
     """The per-step terms of L_AC summed (optionally weighted per step).
+
+    With ``old_log_probs`` the policy term is PPO's clipped surrogate
+    (:func:`clipped_surrogate`) instead of -log pi(a) A: the ISAR PPO base's segment loss
+    (``ISARConfig.base_loss = 'ppo'``, docs/learning.md).
 
     Args:
         logits: (..., A) with graph; values: (...) with graph.
         actions, returns, advantages: (...) constants.
         weights: (...) per-step weights (the batched engine's masks / B); None: 1.
+        old_log_probs: (...) log pi_old(a_t) of the policy that acted, constants; None:
+            the A3C policy-gradient term.
+        clip_coef: epsilon of the clipped surrogate (with ``old_log_probs``).
     """
     log_probs = F.log_softmax(logits, dim=-1)
     entropy = -(log_probs.exp() * log_probs).sum(-1)                       # (...)
     log_pi_a = log_probs.gather(-1, actions.unsqueeze(-1)).squeeze(-1)     # (...)
     value_step = 0.5 * (returns - values).pow(2)
-    policy_step = -log_pi_a * advantages - cfg.beta * entropy
+    if old_log_probs is None:
+        policy_step = -log_pi_a * advantages - cfg.beta * entropy
+    else:
+        policy_step = clipped_surrogate(log_pi_a, old_log_probs, advantages, clip_coef) \
+            - cfg.beta * entropy
     if weights is not None:
         value_step, policy_step, entropy = (value_step * weights, policy_step * weights,
                                             entropy * weights)

@@ -32,7 +32,7 @@ from geonav.policy.callbacks import Callback
 from geonav.policy.config import A3CConfig, NetConfig, to_dict
 from geonav.policy.encoders import build_frozen_encoder
 from geonav.policy.isar import ISARWorker, gradient_path
-from geonav.policy.meta_config import MetaConfig
+from geonav.policy.meta_config import PPO_BASE_META, MetaConfig, check_a3c_base
 from geonav.policy.model import ActorCritic
 from geonav.policy.savn import InteractionLoss, SAVNWorker
 
@@ -174,6 +174,7 @@ class MetaTrainer(A3CTrainer):
         if algo not in WORKERS:
             raise ConfigError(f"meta-training base must be one of {sorted(WORKERS)}, "
                               f"not {algo!r}")
+        check_a3c_base(base_cfg, PPO_BASE_META)
         self.algo = algo
         self.algorithm = f"meta-{algo}"
         self.meta_cfg = meta_cfg if meta_cfg is not None else MetaConfig()

@@ -41,6 +41,16 @@ def add_algo_args(p: argparse.ArgumentParser) -> None:
                    help="do not differentiate through the inner updates (default: second order)")
     g.add_argument("--gradient-path", choices=["recompute", "per-step"], default=None,
                    help="ISAR: batched recompute of each segment (default) or a graph per step")
+    from geonav.policy.config import field_help
+    from geonav.policy.meta_config import BASE_LOSSES, ISARConfig
+
+    ih = field_help(ISARConfig)
+    g.add_argument("--base-loss", choices=BASE_LOSSES, default=None,
+                   help=f"ISAR: {ih['base_loss']} (default a3c)")
+    g.add_argument("--clip-coef", type=positive_float, default=None,
+                   help=f"ISAR: {ih['clip_coef']} (default {ISARConfig.clip_coef})")
+    g.add_argument("--ppo-epochs", type=positive_int, default=None,
+                   help=f"ISAR: {ih['ppo_epochs']} (default {ISARConfig.ppo_epochs})")
 
 
 def _augment_arg(text: str) -> Any:
@@ -111,7 +121,9 @@ def base_cfg_from_args(args: argparse.Namespace, algo: str, toml: dict[str, Any]
                 opts[key] = getattr(args, attr)
     if algo == "isar":
         for key, attr in (("alpha", "alpha"), ("n_steps", "n_steps"),
-                          ("k_segments", "k_segments"), ("gradient_path", "gradient_path")):
+                          ("k_segments", "k_segments"), ("gradient_path", "gradient_path"),
+                          ("base_loss", "base_loss"), ("clip_coef", "clip_coef"),
+                          ("ppo_epochs", "ppo_epochs")):
             if getattr(args, attr, None) is not None:
                 opts[key] = getattr(args, attr)
     if getattr(args, "first_order", False) and algo != "a3c":

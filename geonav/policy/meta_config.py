@@ -16,6 +16,18 @@ from geonav.errors import ConfigError
 from geonav.policy.config import A3CConfig, LossConfig, from_dict, to_dict
 
 GRADIENT_PATHS = ("recompute", "per-step")
+BASE_LOSSES = ("a3c", "ppo")
+PPO_BASE_ASYNC = ("ISAR with base_loss = 'ppo' runs on the batched engine only (engine = "
+                  "'batched', a frozen encoder); the async engine implements base_loss = "
+                  "'a3c'")
+PPO_BASE_META = ("meta-training with ISAR's base_loss = 'ppo' is not implemented (the PPO "
+                 "base exists for `train` on the batched engine); use base_loss = 'a3c'")
+
+
+def check_a3c_base(cfg: Any, message: str) -> None:
+    """Refuse ISAR's PPO base where it is not implemented (``message`` says where)."""
+    if getattr(cfg, "base_loss", "a3c") != "a3c":
+        raise ConfigError(message)
 
 
 @dataclass(frozen=True)
@@ -73,12 +85,28 @@ class ISARConfig(A3CConfig):
     forward (slower; the same numbers)."""
     t_max: int = 15
     """Unused by ISAR (the update schedule is n_steps and k_segments)."""
+    base_loss: str = "a3c"
+    """The base RL loss of every L_int and of L_adapt: 'a3c' (L_AC, ALGORITHMS.md 4.0) or
+    'ppo' (PPO's clipped surrogate against the acting policy's log-probs, with the same
+    GAE returns, value loss and entropy; batched engine only, docs/learning.md)."""
+    clip_coef: float = 0.2
+    """base_loss 'ppo': epsilon of the clipped surrogate."""
+    ppo_epochs: int = 4
+    """base_loss 'ppo': passes over each window's data per adaptive update, one Adam step
+    each; every pass after the first recomputes the window under the new phi, inner
+    updates included (the ratio leaves 1 from the second pass)."""
 
     def __post_init__(self) -> None:
         super().__post_init__()
         if self.n_steps < 1 or self.k_segments < 1:
             raise ConfigError(f"n_steps and k_segments must be >= 1, got {self.n_steps}, "
                               f"{self.k_segments}")
+        if self.base_loss not in BASE_LOSSES:
+            raise ConfigError(f"base_loss must be one of {BASE_LOSSES}, not {self.base_loss!r}")
+        if not 0.0 < self.clip_coef < 1.0:
+            raise ConfigError(f"clip_coef must lie in (0, 1), got {self.clip_coef}")
+        if self.ppo_epochs < 1:
+            raise ConfigError(f"ppo_epochs must be >= 1, got {self.ppo_epochs}")
         if self.gradient_path not in GRADIENT_PATHS:
             raise ConfigError(f"gradient_path must be one of {GRADIENT_PATHS}, "
                               f"not {self.gradient_path!r}")

@@ -31,7 +31,7 @@ new episode) under its own weights, with the graph, in one grouped call for the 
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -69,6 +69,10 @@ class BatchedISARTrainer(BatchedTrainer):
             raise ConfigError("flush_partial_window = false is implemented on engine = "
                               "'async' only")
         super().__init__(env_factory, net_cfg, cfg, **kwargs)
+        if cfg.base_loss == "ppo" and self.frozen is None:
+            raise ConfigError("ISAR with base_loss = 'ppo' needs a frozen encoder (encoder = "
+                              "'random', 'resnet18' or 'corr'); the trainable CNN runs the "
+                              "A3C base only")
 
     def resolved_config(self) -> dict[str, Any]:
         d = super().resolved_config()
@@ -94,16 +98,21 @@ class BatchedISARTrainer(BatchedTrainer):
                     if self.teacher is not None else 0.0})
         return rec
 
-    def segment(self, params: Any, adapted: Adapted, state: Any
+    def segment(self, params: Any, adapted: Adapted, state: Any, keep: bool = False
                 ) -> tuple[torch.Tensor, list[LossTerms], LossTerms, Recorder, Adapted, Any,
-                           list[dict[str, Any]]]:
+                           list[dict[str, Any]], SegmentData | None]:
         """N lock-step steps with the graph: (all-steps loss, its terms per run,
         current-episode loss, recorder, adapted weights (finished slots reset to phi),
-        state, finished episodes)."""
+        state, finished episodes, and with ``keep`` what a replay of the segment needs)."""
         cfg, e, dev = self.cfg, self.net_cfg.embed_dim, self.device
         n, b = cfg.n_steps, self.batch
+        ppo = cfg.base_loss == "ppo"
         rec = Recorder(gram=self.gram)
         logits, values, actions, tlogp, lams = [], [], [], [], []
+        views: list[torch.Tensor] = []
+        targets: list[torch.Tensor] = []
+        starts: list[torch.Tensor] = []
+        done_at: list[torch.Tensor | None] = []
         rewards = np.zeros((n, b))
         ends = np.zeros((n, b), bool)
         end_values = np.zeros((n, b)) if cfg.loss.bootstrap_on_truncation else None
@@ -115,6 +124,10 @@ class BatchedISARTrainer(BatchedTrainer):
             if self.teacher is not None:
                 tlogp.append(self.teacher.step(vi, ti, self.fresh))
                 lams.append([self.teacher.weight(int(k)) for k in self.slot_episode])
+            if keep:
+                views.append(vi)
+                targets.append(ti)
+                starts.append(self.fresh)
             tgt_f = self.slot_targets(params, adapted, ti, rec, tgt_f)
             logit, value, state = factored_step(params, e, self.slot_views(params, adapted, vi,
                                                                            rec),
@@ -122,6 +135,7 @@ class BatchedISARTrainer(BatchedTrainer):
                                                 self.prev_features(vi))
             a = sample_actions(logit, self.rng).to(dev)
             res = self.env_step(a)
+            done_at.append(None)
             if end_values is not None and res.truncated.any():
                 with torch.no_grad():
                     fv = torch.from_numpy(res.final_view).to(dev)
@@ -136,6 +150,7 @@ class BatchedISARTrainer(BatchedTrainer):
             ends[t] = res.done
             if res.done.any():
                 done = torch.from_numpy(res.done).to(dev)
+                done_at[-1] = done
                 current[:t + 1, done] = 0.0  # later inner steps see the new episode only
                 adapted = clear_slots(adapted, (~done).to(current.dtype))
                 for f in res.final:
@@ -152,27 +167,71 @@ class BatchedISARTrainer(BatchedTrainer):
                                          self.prev_features(vi))
         lg = torch.stack(logits)
         masks = self.run_masks(current)  # one run; one per run when packed
-        *runs, mine = segment_terms(lg, torch.stack(values), torch.stack(actions), rewards,
-                                    ends, v_next, cfg.loss, end_values, [*masks, current])
+        vs, acts = torch.stack(values), torch.stack(actions)
+        ret_t, adv_t = segment_advantages(vs, rewards, ends, v_next, cfg.loss, end_values)
+        data = SegmentData(
+            views, targets, starts, done_at, acts, ret_t, adv_t, [*masks, current],
+            # the acting policy's log pi_old(a_t): theta_s of this segment, as acted
+            torch.log_softmax(lg.detach(), -1).gather(-1, acts.unsqueeze(-1)).squeeze(-1)
+            if ppo else None,
+            torch.stack(tlogp).to(lg.dtype) if tlogp else None,
+            torch.tensor(lams, dtype=lg.dtype, device=dev) if tlogp else None)
+        total, runs, mine = self.segment_loss(lg, vs, data)
+        return total, runs, mine, rec, adapted, state, finals, data if keep else None
+
+    def segment_loss(self, logits: torch.Tensor, values: torch.Tensor, d: SegmentData
+                     ) -> tuple[torch.Tensor, list[LossTerms], LossTerms]:
+        """(all-steps loss, its terms per run, current-episode loss) of a segment's
+        logits (N, B, A) and values (N, B): L_AC, or with ``base_loss = 'ppo'`` the clipped
+        surrogate against the acting log-probs, plus the curriculum's KL prior."""
+        cfg = self.cfg
+        *runs, mine = segment_losses(logits, values, d.actions, d.returns, d.advantages,
+                                     cfg.loss, d.weights, d.old_logprobs, cfg.clip_coef)
         total = torch.stack([r.total for r in runs]).sum()
-        if tlogp:  # + lambda KL(pi_T || pi_theta) in every L_int, lambda of each episode
-            lam = torch.tensor(lams, dtype=lg.dtype, device=dev)                  # (N, B)
-            kl = kl_terms(torch.stack(tlogp).to(lg.dtype), lg) * lam
+        if d.teacher_logprobs is not None:  # + lambda KL(pi_T || pi_theta) in every L_int,
+            assert d.kl_weights is not None  # lambda of each episode (N, B)
+            kl = kl_terms(d.teacher_logprobs, logits) * d.kl_weights
             total = total + kl.sum()
+            current = d.weights[-1]
+            assert current is not None
             mine = replace(mine, total=mine.total + (kl * current).sum())
-        return total, runs, mine, rec, adapted, state, finals
+        return total, runs, mine
+
+    def replay_segment(self, params: Any, adapted: Adapted, state: Any, d: SegmentData
+                       ) -> tuple[torch.Tensor, list[LossTerms], LossTerms, Recorder,
+                                  Adapted, Any]:
+        """A kept segment recomputed under ``params`` and ``adapted`` (a PPO pass after
+        the first): the same views, episode starts and ends and actions, no env step."""
+        e = self.net_cfg.embed_dim
+        rec = Recorder(gram=self.gram)
+        logits, values = [], []
+        assert self.table is not None
+        for vi, ti, start, done in zip(d.views, d.targets, d.starts, d.done_at, strict=True):
+            logit, value, state = factored_step(params, e, self.table[vi], self.table[ti],
+                                                state, adapted, rec, start, vi, ti,
+                                                self.prev_features(vi))
+            logits.append(logit)
+            values.append(value)
+            if done is not None:
+                adapted = clear_slots(adapted, (~done).to(values_dtype(self)))
+        total, runs, mine = self.segment_loss(torch.stack(logits), torch.stack(values), d)
+        return total, runs, mine, rec, adapted, state
 
     def update(self) -> tuple[list[dict[str, Any]], Any]:
-        """One window of K segments and its adaptive update."""
+        """One window of K segments and its adaptive update (``ppo_epochs`` of them with
+        ``base_loss = 'ppo'``: the later passes replay the window under the new phi)."""
         cfg = self.cfg
         params = self.params()
         adapted: Adapted = {}
-        state = self.state
+        state0 = state = self.state
         window: list[torch.Tensor] = []
         finals: list[dict[str, Any]] = []
+        kept: list[SegmentData] = []
+        replays = cfg.ppo_epochs - 1 if cfg.base_loss == "ppo" else 0
         sums = np.zeros((len(self.run_slices()), 3))  # policy, value, entropy per run
         for k in range(cfg.k_segments):
-            total, runs, mine, rec, adapted, state, fin = self.segment(params, adapted, state)
+            total, runs, mine, rec, adapted, state, fin, data = self.segment(
+                params, adapted, state, keep=replays > 0)
             finals += fin
             window.append(total)
             sums += [[float(r.policy.detach()), float(r.value.detach()),
@@ -182,7 +241,13 @@ class BatchedISARTrainer(BatchedTrainer):
                 adapted = rec.inner_factors(mine.total, adapted, cfg.alpha,
                                             create_graph=cfg.second_order, weights=live)
                 self.inner += (~self.fresh).cpu().numpy()
+                if data is not None:
+                    data.live = live
+            if data is not None:
+                kept.append(data)
         self.step_optimizer(torch.stack(window).sum() / self.run_batch)
+        for _ in range(replays):
+            sums = self.replay_window(state0, kept)
         self.adapt += 1
         self.state = detach_state(state)
         b = float(self.run_batch)
@@ -190,6 +255,85 @@ class BatchedISARTrainer(BatchedTrainer):
                                       torch.tensor(vl / b), torch.tensor(ent / b)),
                             cfg.n_steps * cfg.k_segments) for pl, vl, ent in sums]
         return finals, stats[0] if len(stats) == 1 else stats
+
+    def replay_window(self, state: Any, kept: list[SegmentData]) -> np.ndarray:
+        """One more PPO pass over a window: its K segments recomputed from the window's
+        start state under the current phi, the inner updates redone with the surrogate
+        against the acting log-probs and the first pass's returns and advantages, then
+        one Adam step. Returns the pass's (policy, value, entropy) sums per run."""
+        cfg = self.cfg
+        params = self.params()  # packed runs stack the members' leaves anew
+        adapted: Adapted = {}
+        window: list[torch.Tensor] = []
+        sums = np.zeros((len(self.run_slices()), 3))
+        for d in kept:
+            total, runs, mine, rec, adapted, state = self.replay_segment(params, adapted,
+                                                                         state, d)
+            window.append(total)
+            sums += [[float(r.policy.detach()), float(r.value.detach()),
+                      float(r.entropy.detach())] for r in runs]
+            if d.live is not None:
+                adapted = rec.inner_factors(mine.total, adapted, cfg.alpha,
+                                            create_graph=cfg.second_order, weights=d.live)
+        self.step_optimizer(torch.stack(window).sum() / self.run_batch)
+        return sums
+
+
+@dataclass
+class SegmentData:
+    """A segment's inputs and loss constants: for its loss, and for replaying it in a PPO
+    pass after the first (``views`` to ``done_at`` are kept only then)."""
+
+    views: list[torch.Tensor]
+    """Per step, (B,) view index of each slot's observation."""
+    targets: list[torch.Tensor]
+    """Per step, (B,) view index of each slot's target."""
+    starts: list[torch.Tensor]
+    """Per step, (B,) bool: the slot's state is zeroed before the step (a new episode)."""
+    done_at: list[torch.Tensor | None]
+    """Per step, (B,) bool where the step ended some slot's episode (theta_s <- phi)."""
+    actions: torch.Tensor
+    """(N, B) actions taken."""
+    returns: torch.Tensor
+    """(N, B) discounted returns (masked GAE of the acting pass, kept for later passes)."""
+    advantages: torch.Tensor
+    """(N, B) GAE advantages (ditto)."""
+    weights: list[torch.Tensor | None]
+    """Step weightings of the loss: one per run (None: every step), then the slots'
+    current episodes (the inner step's loss)."""
+    old_logprobs: torch.Tensor | None
+    """(N, B) log pi_old(a_t) of the acting theta_s (base_loss 'ppo'), else None."""
+    teacher_logprobs: torch.Tensor | None = None
+    """(N, B, A) the curriculum teacher's log-probs, or None."""
+    kl_weights: torch.Tensor | None = None
+    """(N, B) the KL prior's lambda per step."""
+    live: torch.Tensor | None = None
+    """(B,) the inner step's slot weights after this segment (None: no inner step)."""
+
+
+def segment_advantages(values: torch.Tensor, rewards: np.ndarray, ends: np.ndarray,
+                       v_next: torch.Tensor, lc: Any, end_values: np.ndarray | None
+                       ) -> tuple[torch.Tensor, torch.Tensor]:
+    """(returns, advantages) (T, B) of a segment of lock-step steps: masked GAE
+    bootstrapped with V(s_next) ``v_next`` (B,) where the last step did not end the slot's
+    episode, in the values' dtype and device."""
+    bootstrap = np.where(ends[-1], 0.0, v_next.to("cpu", torch.float64).numpy())
+    ret, adv = gae_returns(rewards, values.detach().to("cpu", torch.float64).numpy(),
+                           bootstrap, ends, lc.gamma, lc.tau, end_values)
+    return (torch.from_numpy(ret).to(values.device, values.dtype),
+            torch.from_numpy(adv).to(values.device, values.dtype))
+
+
+def segment_losses(logits: torch.Tensor, values: torch.Tensor, actions: torch.Tensor,
+                   returns: torch.Tensor, advantages: torch.Tensor, lc: Any,
+                   weights: list[torch.Tensor | None],
+                   old_logprobs: torch.Tensor | None = None, clip_coef: float = 0.2
+                   ) -> list[LossTerms]:
+    """The segment loss once per step weighting in ``weights``: L_AC, or PPO's clipped
+    surrogate against ``old_logprobs`` (see :func:`~geonav.policy.losses.policy_value_terms`)."""
+    return [policy_value_terms(logits, values, actions, returns, advantages, lc, weights=w,
+                               old_log_probs=old_logprobs, clip_coef=clip_coef)
+            for w in weights]
 
 
 def segment_terms(logits: torch.Tensor, values: torch.Tensor, actions: torch.Tensor,
@@ -199,13 +343,8 @@ def segment_terms(logits: torch.Tensor, values: torch.Tensor, actions: torch.Ten
     """L_AC of a segment of lock-step steps (T, B), once per step weighting in ``weights``
     (None: every step): masked GAE bootstrapped with V(s_next) ``v_next`` (B,) where the
     last step did not end the slot's episode."""
-    bootstrap = np.where(ends[-1], 0.0, v_next.to("cpu", torch.float64).numpy())
-    ret, adv = gae_returns(rewards, values.detach().to("cpu", torch.float64).numpy(),
-                           bootstrap, ends, lc.gamma, lc.tau, end_values)
-    ret_t = torch.from_numpy(ret).to(values.device, values.dtype)
-    adv_t = torch.from_numpy(adv).to(values.device, values.dtype)
-    return [policy_value_terms(logits, values, actions, ret_t, adv_t, lc, weights=w)
-            for w in weights]
+    ret_t, adv_t = segment_advantages(values, rewards, ends, v_next, lc, end_values)
+    return segment_losses(logits, values, actions, ret_t, adv_t, lc, weights)
 
 
 GRAM_MAX_VIEWS = 8192
@@ -224,4 +363,5 @@ def values_dtype(trainer: BatchedTrainer) -> torch.dtype:
     return next(trainer.model.parameters()).dtype
 
 
-__all__ = ["BatchedISARTrainer", "clear_slots", "segment_terms", "gram_matrix"]
+__all__ = ["BatchedISARTrainer", "SegmentData", "clear_slots", "segment_advantages",
+           "segment_losses", "segment_terms", "gram_matrix"]

@@ -77,7 +77,7 @@ from geonav.policy.config import A3CConfig, to_dict
 from geonav.policy.isar import gradient_path
 from geonav.policy.losses import LossTerms
 from geonav.policy.meta import TASK_GRADIENT, checkpoint_after_update, meta_step
-from geonav.policy.meta_config import MetaConfig
+from geonav.policy.meta_config import PPO_BASE_META, MetaConfig, check_a3c_base
 from geonav.policy.model import State, detach_state
 from geonav.vecenv import LatticeVecEnv
 
@@ -276,6 +276,7 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
         if not getattr(base_cfg, "flush_partial_window", True):
             raise ConfigError("flush_partial_window = false is implemented on engine = "
                               "'async' only")
+        check_a3c_base(base_cfg, PPO_BASE_META)
         super().__init__(env_factory, net_cfg, base_cfg, meta_cfg, **kwargs)
 
     def schedule(self) -> tuple[int, int]:

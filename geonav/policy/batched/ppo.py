@@ -25,6 +25,7 @@ from torch.nn import functional as F
 from geonav.errors import ConfigError
 from geonav.policy.batched.trainer import BatchedTrainer, RolloutBatch
 from geonav.policy.config import A3CConfig, LossConfig
+from geonav.policy.losses import clipped_surrogate
 
 
 @dataclass(frozen=True)
@@ -83,15 +84,13 @@ class BatchedPPOTrainer(BatchedTrainer):
         assert ro.logprobs is not None
         logp_all = F.log_softmax(logits, -1)
         logp = logp_all.gather(-1, ro.actions[:, slots].unsqueeze(-1)).squeeze(-1)
-        ratio = (logp - ro.logprobs[:, slots]).exp()
         out = []
         for cols in torch.arange(len(slots)).split(sizes or [len(slots)]):
             adv = advantages[:, slots[cols]]
             if cfg.normalize_advantages and adv.numel() > 1:
                 adv = (adv - adv.mean()) / (adv.std() + 1e-8)
-            rho = ratio[:, cols]
-            pg = torch.max(-adv * rho,
-                           -adv * rho.clamp(1.0 - cfg.clip_coef, 1.0 + cfg.clip_coef)).mean()
+            pg = clipped_surrogate(logp[:, cols], ro.logprobs[:, slots[cols]], adv,
+                                   cfg.clip_coef).mean()
             lp = logp_all[:, cols]
             entropy = -(lp.exp() * lp).sum(-1).mean()
             value = (0.5 * (returns[:, slots[cols]] - values[:, cols]).pow(2)).mean()
