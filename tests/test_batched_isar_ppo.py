@@ -87,8 +87,8 @@ def test_refusals():
         ISARTrainer(factory, NET, CFG, tensorboard=False)
     with pytest.raises(ConfigError, match="batched engine only"):
         resolve("isar", "async", NET, CFG)
-    with pytest.raises(ConfigError, match="batched engine only.*frozen encoder"):
-        resolve("isar", "batched", tiny_net("cnn"), CFG)
+    with pytest.raises(ConfigError, match="base_loss = 'ppo' needs a frozen encoder"):
+        BatchedISARTrainer(factory, tiny_net("cnn"), CFG, tensorboard=False)
     with pytest.raises(ConfigError, match="meta-training with ISAR's base_loss = 'ppo'"):
         build_meta_trainer("isar", "batched", factory, NET, CFG, MetaConfig(episodes=2))
     assert resolve("isar", "batched", NET, CFG).cls is BatchedISARTrainer
