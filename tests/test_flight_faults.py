@@ -442,12 +442,71 @@ def test_the_track_picture_is_zoomed_to_the_flight(tmp_path: Path) -> None:
     assert math.isfinite(box[0])
 
 
-def test_mavsdk_log_goes_to_python_logging(scene: Any, tmp_path: Path, caplog: Any) -> None:
+def test_mavsdk_log_goes_to_python_logging(scene: Any, tmp_path: Path, caplog: Any,
+                                           capfd: Any) -> None:
     with _emulator(scene, "px4") as emu, caplog.at_level("DEBUG", logger="mavsdk"):
         v = open_vehicle(emu.connect_url, "mavsdk")
         v.connect(10.0)
         v.close()
-    assert any(r.name == "mavsdk" for r in caplog.records)
+    assert any(r.name == "mavsdk" and "MAVSDK version" in r.getMessage()
+               for r in caplog.records)
+    printed = capfd.readouterr()
+    # MAVSDK's own printing looks like "[04:26:00|Info ] MAVSDK version: v4.1.0 (...)".
+    assert "|Info ]" not in printed.out + printed.err
+
+
+def test_mavsdk_repeats_its_errors_once_per_window(caplog: Any, capfd: Any) -> None:
+    """A port that refuses: MAVSDK logged 'Connect error' and 'Sending message failed'
+    once a second each (about 100 ERROR lines on the console after ArduCopter SITL
+    was killed); now each shows at most once per window, the repeats at DEBUG."""
+    import socket
+
+    with socket.socket() as s:  # a free port that nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    v = open_vehicle(f"tcp:127.0.0.1:{port}", "mavsdk")
+    with caplog.at_level("DEBUG", logger="mavsdk"), pytest.raises(FlightTimeout):
+        v.connect(3.0)
+    v.close()
+    refused = [r for r in caplog.records
+               if r.name == "mavsdk" and "Connect error" in r.getMessage()]
+    assert len(refused) >= 2  # MAVSDK retried (at 1 Hz) and every try reached logging
+    assert sum(r.levelno >= 30 for r in refused) <= 1, [r.getMessage() for r in refused]
+    assert all(r.levelno == 10 for r in refused[1:])
+    printed = capfd.readouterr()
+    assert "|Error]" not in printed.out + printed.err  # nothing raw on the console
+
+
+def test_mavsdk_log_forwarder_folds_repeats() -> None:
+    import logging
+
+    from geonav.mavlink_bridge.mavsdk_backend import MavsdkLogForwarder
+
+    got: list[tuple[int, str]] = []
+
+    class _Sink(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            got.append((record.levelno, record.getMessage()))
+
+    logger = logging.getLogger("test.mavsdk.fold")
+    logger.setLevel(logging.DEBUG)
+    logger.propagate = False
+    logger.addHandler(_Sink())
+    now = [0.0]
+    fwd = MavsdkLogForwarder(logger, window_s=10.0, clock=lambda: now[0])
+    for t in range(25):  # one ERROR a second for 25 s, plus one INFO line
+        now[0] = float(t)
+        assert fwd(3, "Sending message failed", "mavsdk_impl.cpp", 1187) is True
+    assert fwd(1, "MAVSDK version: v4.1.0", None, 0) is True
+    shown = [(lvl, m) for lvl, m in got if lvl > logging.DEBUG]
+    assert shown == [
+        (logging.ERROR, "Sending message failed"),
+        (logging.ERROR, "Sending message failed (and 9 more in 10 s)"),
+        (logging.ERROR, "Sending message failed (and 9 more in 10 s)"),
+        (logging.INFO, "MAVSDK version: v4.1.0"),
+    ]
+    assert sum(lvl == logging.DEBUG for lvl, _ in got) == 22
+    assert fwd("not a level", None, None, 0) is False  # type: ignore[arg-type]
 
 
 def test_emulate_stops_on_sigterm(capsys: Any) -> None:
