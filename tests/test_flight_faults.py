@@ -294,6 +294,24 @@ def test_takeover_airborne_refuses_a_vehicle_armed_on_the_ground(scene: Any,
         assert not emu.setpoints and emu.armed
 
 
+
+@pytest.mark.parametrize("backend", ["pymavlink", "mavsdk"])
+def test_a_px4_whose_preflight_checks_fail_is_refused_in_words(scene: Any, tmp_path: Path,
+                                                               backend: str) -> None:
+    # Seen on PX4 SIH: after a landing, "Preflight: GPS Vertical Pos Drift too high" kept
+    # the HEARTBEAT at UNINIT for minutes; a second flight was refused after 60 s with
+    # "HEARTBEAT system_status STANDBY: not seen ... status 0".
+    text = "Preflight: GPS Vertical Pos Drift too high"
+    with _emulator(scene, "px4", preflight_fail=text) as emu:
+        quick = Timeouts(**{**FAST.__dict__, "ready_s": 2.0})
+        result = _fly(scene, emu, ScriptedPolicy([1], META), tmp_path, backend, timeouts=quick)
+        assert result.outcome == "refused" and result.exit_code == 3, result.reason
+        assert "pre-flight checks did not pass" in result.reason, result.reason
+        assert text in result.reason
+        assert not emu.armed and not emu.setpoints
+        assert not emu.commands_named(M.MAV_CMD_COMPONENT_ARM_DISARM)
+
+
 # ----------------------------------------------------------------- position fence
 def test_overshoot_past_the_fence_ends_in_landing(scene: Any, tmp_path: Path) -> None:
     # Fence margin = one 5 m step: setpoints stay 5 m inside the scene, the vehicle may
