@@ -412,6 +412,11 @@ def test_a_dead_autopilot_is_one_line_and_bounded(
     assert "\n" not in result.reason and "failsafe must act" in result.reason
     assert not result.end_ok and "NOT confirmed" in result.summary()
     assert "link lost: link lost" not in result.summary()  # the outcome is said once
+    # ... and so is the rest: PX4 SIH printed "link lost: LOCAL_POSITION_NED stream lost
+    # ...; link lost: no autopilot heartbeat ...; the autopilot's own failsafe must act;
+    # 3 steps; end land NOT confirmed (disarmed False); the autopilot's failsafe must act".
+    assert result.summary().count("link lost") == 1, result.summary()
+    assert result.summary().count("failsafe must act") == 1, result.summary()
     assert errors == []  # no thread died with a traceback
     # Nothing on the console from the libraries: pymavlink printed "EOF on TCP socket"
     # at every read of the closed port (649,379 lines when ArduCopter SITL was killed).

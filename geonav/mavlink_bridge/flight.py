@@ -348,10 +348,9 @@ class FlightResult:
         elif self.end_ok:
             end = f"end {self.end_action} confirmed, disarmed"
         else:
-            end = (
-                f"end {self.end_action} NOT confirmed (disarmed {self.disarmed}); "
-                "the autopilot's failsafe must act"
-            )
+            end = f"end {self.end_action} NOT confirmed (disarmed {self.disarmed})"
+            if "failsafe must act" not in self.reason:  # said once
+                end += "; the autopilot's failsafe must act"
         words = OUTCOME_WORDS[self.outcome]
         head = self.reason if self.reason.lower().startswith(words) else \
             f"{words}: {self.reason}"
@@ -866,6 +865,12 @@ def _run_flight(
     if end_outcome is not None and outcome in ("reached", "missed", "safety_stop"):
         outcome = end_outcome
     if end_note:
+        if reason and end_outcome is not None:
+            # The outcome words head the summary once: "link lost: <why the flight
+            # ended>; no autopilot heartbeat ...", not "...; link lost: no ..." (PX4 SIH).
+            words = OUTCOME_WORDS[end_outcome] + ": "
+            if end_note.lower().startswith(words):
+                end_note = end_note[len(words):]
         reason = f"{reason}; {end_note}" if reason else end_note
     signal_name = None
     if sigs.received is not None:
