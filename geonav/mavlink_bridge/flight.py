@@ -347,17 +347,37 @@ class FlightResult:
             )
         elif self.end_ok:
             end = f"end {self.end_action} confirmed, disarmed"
+        elif self.outcome == "takeover":  # the operator changed the mode during the landing
+            end = f"end {self.end_action} stopped by the operator (the operator has control)"
         else:
             end = f"end {self.end_action} NOT confirmed (disarmed {self.disarmed})"
             if "failsafe must act" not in self.reason:  # said once
                 end += "; the autopilot's failsafe must act"
         words = OUTCOME_WORDS[self.outcome]
-        head = self.reason if self.reason.lower().startswith(words) else \
-            f"{words}: {self.reason}"
+        # "operator took over: mode changed to 'hold' ...", not "operator took over:
+        # operator takeover: mode changed ..." (PX4 SIH and ArduCopter SITL).
+        reason = _strip_outcome(self.outcome, self.reason)
+        head = reason if reason.lower().startswith(words) else f"{words}: {reason}"
         return (
             f"{head}; {self.steps} steps; {end}; "
             f"record {self.record_path}; track {self.png_path}"
         )
+
+
+#: How errors of an outcome begin their message ("link lost: no autopilot heartbeat").
+_OUTCOME_PREFIXES = {
+    "link_lost": ("link lost: ",),
+    "takeover": ("operator took over: ", "operator takeover: "),
+    "interrupted": ("interrupted: ",),
+}
+
+
+def _strip_outcome(outcome: str, text: str) -> str:
+    """``text`` without a leading restatement of ``outcome`` (the summary says it once)."""
+    for prefix in (OUTCOME_WORDS[outcome] + ": ",) + _OUTCOME_PREFIXES.get(outcome, ()):
+        if text.lower().startswith(prefix):
+            return text[len(prefix):]
+    return text
 
 
 class FlightInterrupted(KeyboardInterrupt):
@@ -868,9 +888,7 @@ def _run_flight(
         if reason and end_outcome is not None:
             # The outcome words head the summary once: "link lost: <why the flight
             # ended>; no autopilot heartbeat ...", not "...; link lost: no ..." (PX4 SIH).
-            words = OUTCOME_WORDS[end_outcome] + ": "
-            if end_note.lower().startswith(words):
-                end_note = end_note[len(words):]
+            end_note = _strip_outcome(end_outcome, end_note)
         reason = f"{reason}; {end_note}" if reason else end_note
     signal_name = None
     if sigs.received is not None:
