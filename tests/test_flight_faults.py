@@ -146,6 +146,8 @@ def test_sigterm_lands_a_background_fly_whose_sigint_is_ignored(scene: Any, tmp_
     result = read_record(out / "flight.jsonl")[-1]
     assert result["kind"] == "result" and result["outcome"] == "interrupted"
     assert result["signal"] == "SIGTERM" and result["end_ok"] and result["disarmed"]
+    # The record says the exit code the process had (PX4 SIH: 130 in the record, 143 out).
+    assert result["exit_code"] == proc.returncode == 143
 
 
 def test_sighup_ends_the_flight_like_ctrl_c(scene: Any, tmp_path: Path) -> None:
@@ -154,6 +156,7 @@ def test_sighup_ends_the_flight_like_ctrl_c(scene: Any, tmp_path: Path) -> None:
         result = _fly(scene, emu, policy, tmp_path, target_cell=(9, 9))
         assert result.outcome == "interrupted" and result.signal_name == "SIGHUP"
         assert result.exit_code == 129
+        assert read_record(result.record_path)[-1]["exit_code"] == 129
         assert result.end_action == "land" and result.end_ok and not emu.armed
     assert signal.getsignal(signal.SIGHUP) is signal.SIG_DFL  # handlers restored
 

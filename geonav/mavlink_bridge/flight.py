@@ -333,9 +333,7 @@ class FlightResult:
     @property
     def exit_code(self) -> int:
         """Process exit code of the outcome (128 + signal number when a signal ended it)."""
-        if self.outcome == "interrupted" and self.signal_name:
-            return 128 + int(signal.Signals[self.signal_name])
-        return OUTCOMES[self.outcome]
+        return _exit_code(self.outcome, self.signal_name)
 
     def summary(self) -> str:
         """One line for the console."""
@@ -362,6 +360,13 @@ class FlightResult:
             f"{head}; {self.steps} steps; {end}; "
             f"record {self.record_path}; track {self.png_path}"
         )
+
+
+def _exit_code(outcome: str, signal_name: str | None) -> int:
+    """The process exit code of an outcome: 128 + the signal's number when one ended it."""
+    if outcome == "interrupted" and signal_name:
+        return 128 + int(signal.Signals[signal_name])
+    return OUTCOMES[outcome]
 
 
 #: How errors of an outcome begin their message ("link lost: no autopilot heartbeat").
@@ -904,7 +909,7 @@ def _run_flight(
         "result",
         success=success,
         outcome=outcome,
-        exit_code=OUTCOMES[outcome],
+        exit_code=_exit_code(outcome, signal_name),  # 143 for SIGTERM, as the process exits
         reason=reason,
         steps=steps,
         final_cell=cell,
