@@ -227,7 +227,8 @@ def test_operator_wins_at_every_phase(scene: Any, tmp_path: Path, phase: str) ->
         assert "outside geonav" in result.reason, result.reason
         line = result.summary()  # the outcome said once, the operator has control
         assert line.startswith("operator took over: "), line
-        assert "operator takeover" not in line and "failsafe must act" not in line, line
+        assert line.count("operator took over") == 1, line
+        assert "operator takeover:" not in line and "failsafe must act" not in line, line
         # Nothing commanded after the operator's mode change: no LAND on top, no re-sent mode.
         assert _geonav_commands(emu, after_t=gcs.t_s) == []
         late = [s for s in emu.setpoints if s.t_s > gcs.t_s + 1.0]
