@@ -146,6 +146,8 @@ def test_sigterm_lands_a_background_fly_whose_sigint_is_ignored(scene: Any, tmp_
     result = read_record(out / "flight.jsonl")[-1]
     assert result["kind"] == "result" and result["outcome"] == "interrupted"
     assert result["signal"] == "SIGTERM" and result["end_ok"] and result["disarmed"]
+    # The record says the exit code the process had (PX4 SIH: 130 in the record, 143 out).
+    assert result["exit_code"] == proc.returncode == 143
 
 
 def test_sighup_ends_the_flight_like_ctrl_c(scene: Any, tmp_path: Path) -> None:
@@ -154,6 +156,7 @@ def test_sighup_ends_the_flight_like_ctrl_c(scene: Any, tmp_path: Path) -> None:
         result = _fly(scene, emu, policy, tmp_path, target_cell=(9, 9))
         assert result.outcome == "interrupted" and result.signal_name == "SIGHUP"
         assert result.exit_code == 129
+        assert read_record(result.record_path)[-1]["exit_code"] == 129
         assert result.end_action == "land" and result.end_ok and not emu.armed
     assert signal.getsignal(signal.SIGHUP) is signal.SIG_DFL  # handlers restored
 
@@ -221,7 +224,11 @@ def test_operator_wins_at_every_phase(scene: Any, tmp_path: Path, phase: str) ->
             gcs.close()
         assert gcs.t_s is not None, "the operator never acted"
         assert result.outcome == "takeover" and result.exit_code == 5, result.reason
-        assert "operator takeover" in result.reason
+        assert "outside geonav" in result.reason, result.reason
+        line = result.summary()  # the outcome said once, the operator has control
+        assert line.startswith("operator took over: "), line
+        assert line.count("operator took over") == 1, line
+        assert "operator takeover:" not in line and "failsafe must act" not in line, line
         # Nothing commanded after the operator's mode change: no LAND on top, no re-sent mode.
         assert _geonav_commands(emu, after_t=gcs.t_s) == []
         late = [s for s in emu.setpoints if s.t_s > gcs.t_s + 1.0]
@@ -292,6 +299,24 @@ def test_takeover_airborne_refuses_a_vehicle_armed_on_the_ground(scene: Any,
         assert {c.command for c in _geonav_commands(emu)} <= {
             M.MAV_CMD_SET_MESSAGE_INTERVAL, M.MAV_CMD_REQUEST_MESSAGE}
         assert not emu.setpoints and emu.armed
+
+
+
+@pytest.mark.parametrize("backend", ["pymavlink", "mavsdk"])
+def test_a_px4_whose_preflight_checks_fail_is_refused_in_words(scene: Any, tmp_path: Path,
+                                                               backend: str) -> None:
+    # Seen on PX4 SIH: after a landing, "Preflight: GPS Vertical Pos Drift too high" kept
+    # the HEARTBEAT at UNINIT for minutes; a second flight was refused after 60 s with
+    # "HEARTBEAT system_status STANDBY: not seen ... status 0".
+    text = "Preflight: GPS Vertical Pos Drift too high"
+    with _emulator(scene, "px4", preflight_fail=text) as emu:
+        quick = Timeouts(**{**FAST.__dict__, "ready_s": 2.0})
+        result = _fly(scene, emu, ScriptedPolicy([1], META), tmp_path, backend, timeouts=quick)
+        assert result.outcome == "refused" and result.exit_code == 3, result.reason
+        assert "pre-flight checks did not pass" in result.reason, result.reason
+        assert text in result.reason
+        assert not emu.armed and not emu.setpoints
+        assert not emu.commands_named(M.MAV_CMD_COMPONENT_ARM_DISARM)
 
 
 # ----------------------------------------------------------------- position fence
@@ -394,6 +419,11 @@ def test_a_dead_autopilot_is_one_line_and_bounded(
     assert "\n" not in result.reason and "failsafe must act" in result.reason
     assert not result.end_ok and "NOT confirmed" in result.summary()
     assert "link lost: link lost" not in result.summary()  # the outcome is said once
+    # ... and so is the rest: PX4 SIH printed "link lost: LOCAL_POSITION_NED stream lost
+    # ...; link lost: no autopilot heartbeat ...; the autopilot's own failsafe must act;
+    # 3 steps; end land NOT confirmed (disarmed False); the autopilot's failsafe must act".
+    assert result.summary().count("link lost") == 1, result.summary()
+    assert result.summary().count("failsafe must act") == 1, result.summary()
     assert errors == []  # no thread died with a traceback
     # Nothing on the console from the libraries: pymavlink printed "EOF on TCP socket"
     # at every read of the closed port (649,379 lines when ArduCopter SITL was killed).
@@ -442,12 +472,71 @@ def test_the_track_picture_is_zoomed_to_the_flight(tmp_path: Path) -> None:
     assert math.isfinite(box[0])
 
 
-def test_mavsdk_log_goes_to_python_logging(scene: Any, tmp_path: Path, caplog: Any) -> None:
+def test_mavsdk_log_goes_to_python_logging(scene: Any, tmp_path: Path, caplog: Any,
+                                           capfd: Any) -> None:
     with _emulator(scene, "px4") as emu, caplog.at_level("DEBUG", logger="mavsdk"):
         v = open_vehicle(emu.connect_url, "mavsdk")
         v.connect(10.0)
         v.close()
-    assert any(r.name == "mavsdk" for r in caplog.records)
+    assert any(r.name == "mavsdk" and "MAVSDK version" in r.getMessage()
+               for r in caplog.records)
+    printed = capfd.readouterr()
+    # MAVSDK's own printing looks like "[04:26:00|Info ] MAVSDK version: v4.1.0 (...)".
+    assert "|Info ]" not in printed.out + printed.err
+
+
+def test_mavsdk_repeats_its_errors_once_per_window(caplog: Any, capfd: Any) -> None:
+    """A port that refuses: MAVSDK logged 'Connect error' and 'Sending message failed'
+    once a second each (about 100 ERROR lines on the console after ArduCopter SITL
+    was killed); now each shows at most once per window, the repeats at DEBUG."""
+    import socket
+
+    with socket.socket() as s:  # a free port that nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    v = open_vehicle(f"tcp:127.0.0.1:{port}", "mavsdk")
+    with caplog.at_level("DEBUG", logger="mavsdk"), pytest.raises(FlightTimeout):
+        v.connect(3.0)
+    v.close()
+    refused = [r for r in caplog.records
+               if r.name == "mavsdk" and "Connect error" in r.getMessage()]
+    assert len(refused) >= 2  # MAVSDK retried (at 1 Hz) and every try reached logging
+    assert sum(r.levelno >= 30 for r in refused) <= 1, [r.getMessage() for r in refused]
+    assert all(r.levelno == 10 for r in refused[1:])
+    printed = capfd.readouterr()
+    assert "|Error]" not in printed.out + printed.err  # nothing raw on the console
+
+
+def test_mavsdk_log_forwarder_folds_repeats() -> None:
+    import logging
+
+    from geonav.mavlink_bridge.mavsdk_backend import MavsdkLogForwarder
+
+    got: list[tuple[int, str]] = []
+
+    class _Sink(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            got.append((record.levelno, record.getMessage()))
+
+    logger = logging.getLogger("test.mavsdk.fold")
+    logger.setLevel(logging.DEBUG)
+    logger.propagate = False
+    logger.addHandler(_Sink())
+    now = [0.0]
+    fwd = MavsdkLogForwarder(logger, window_s=10.0, clock=lambda: now[0])
+    for t in range(25):  # one ERROR a second for 25 s, plus one INFO line
+        now[0] = float(t)
+        assert fwd(3, "Sending message failed", "mavsdk_impl.cpp", 1187) is True
+    assert fwd(1, "MAVSDK version: v4.1.0", None, 0) is True
+    shown = [(lvl, m) for lvl, m in got if lvl > logging.DEBUG]
+    assert shown == [
+        (logging.ERROR, "Sending message failed"),
+        (logging.ERROR, "Sending message failed (and 9 more in 10 s)"),
+        (logging.ERROR, "Sending message failed (and 9 more in 10 s)"),
+        (logging.INFO, "MAVSDK version: v4.1.0"),
+    ]
+    assert sum(lvl == logging.DEBUG for lvl, _ in got) == 22
+    assert fwd("not a level", None, None, 0) is False  # type: ignore[arg-type]
 
 
 def test_emulate_stops_on_sigterm(capsys: Any) -> None:

@@ -102,6 +102,10 @@ class EmulatorConfig:
             pauses the vehicle instead of jumping it.
         airborne_alt_m: start already armed and hovering this high above
             home in the hold mode (a vehicle someone else is flying); 0: on the ground.
+        preflight_fail: PX4 only: a pre-flight check that keeps failing with
+            this text (the HEARTBEAT then shows UNINIT, not STANDBY, and the
+            text is repeated every 5 s, as PX4 SIH did after a landing with
+            "Preflight: GPS Vertical Pos Drift too high"); "" for none.
     """
 
     autopilot: str = M.PX4
@@ -128,6 +132,7 @@ class EmulatorConfig:
     position_rate_hz: float = 10.0
     max_dt_s: float = 0.1
     airborne_alt_m: float = 0.0
+    preflight_fail: str = ""
 
     def __post_init__(self) -> None:
         if self.autopilot not in (M.PX4, M.ARDUPILOT):
@@ -220,6 +225,7 @@ class Emulator:
         # Faults.
         self._link_down_until = 0.0
         self._refuse_arming: str | None = None
+        self._preflight_text_t = -math.inf
         self._gps_lost = False
         self._param_overrides: dict[str, float] = {}
         self._pending_reply: str | None = None
@@ -677,6 +683,12 @@ class Emulator:
             status = M.MAV_STATE_BOOT
         elif self.armed:
             status = M.MAV_STATE_ACTIVE
+        elif self.flavour == M.PX4 and self.cfg.preflight_fail:
+            # PX4's HEARTBEAT.hpp: STANDBY only while pre_flight_checks_pass, else UNINIT.
+            status = M.MAV_STATE_UNINIT
+            if self.t_s - self._preflight_text_t >= 5.0:
+                self._preflight_text_t = self.t_s
+                self._statustext(4, self.cfg.preflight_fail)
         else:
             status = M.MAV_STATE_STANDBY
         autopilot = M.MAV_AUTOPILOT_PX4 if self.flavour == M.PX4 else M.MAV_AUTOPILOT_ARDUPILOTMEGA
@@ -1085,6 +1097,8 @@ class Emulator:
     def _prearm_failure(self) -> str | None:
         if self._refuse_arming is not None:
             return self._refuse_arming
+        if self.flavour == M.PX4 and self.cfg.preflight_fail:
+            return self.cfg.preflight_fail
         if not self.booted:
             return "System not ready (booting)"
         if self.t_s < self.cfg.prearm_s:

@@ -333,9 +333,7 @@ class FlightResult:
     @property
     def exit_code(self) -> int:
         """Process exit code of the outcome (128 + signal number when a signal ended it)."""
-        if self.outcome == "interrupted" and self.signal_name:
-            return 128 + int(signal.Signals[self.signal_name])
-        return OUTCOMES[self.outcome]
+        return _exit_code(self.outcome, self.signal_name)
 
     def summary(self) -> str:
         """One line for the console."""
@@ -347,18 +345,44 @@ class FlightResult:
             )
         elif self.end_ok:
             end = f"end {self.end_action} confirmed, disarmed"
+        elif self.outcome == "takeover":  # the operator changed the mode during the landing
+            end = f"end {self.end_action} stopped by the operator (the operator has control)"
         else:
-            end = (
-                f"end {self.end_action} NOT confirmed (disarmed {self.disarmed}); "
-                "the autopilot's failsafe must act"
-            )
+            end = f"end {self.end_action} NOT confirmed (disarmed {self.disarmed})"
+            if "failsafe must act" not in self.reason:  # said once
+                end += "; the autopilot's failsafe must act"
         words = OUTCOME_WORDS[self.outcome]
-        head = self.reason if self.reason.lower().startswith(words) else \
-            f"{words}: {self.reason}"
+        # "operator took over: mode changed to 'hold' ...", not "operator took over:
+        # operator takeover: mode changed ..." (PX4 SIH and ArduCopter SITL).
+        reason = _strip_outcome(self.outcome, self.reason)
+        head = reason if reason.lower().startswith(words) else f"{words}: {reason}"
         return (
             f"{head}; {self.steps} steps; {end}; "
             f"record {self.record_path}; track {self.png_path}"
         )
+
+
+def _exit_code(outcome: str, signal_name: str | None) -> int:
+    """The process exit code of an outcome: 128 + the signal's number when one ended it."""
+    if outcome == "interrupted" and signal_name:
+        return 128 + int(signal.Signals[signal_name])
+    return OUTCOMES[outcome]
+
+
+#: How errors of an outcome begin their message ("link lost: no autopilot heartbeat").
+_OUTCOME_PREFIXES = {
+    "link_lost": ("link lost: ",),
+    "takeover": ("operator took over: ", "operator takeover: "),
+    "interrupted": ("interrupted: ",),
+}
+
+
+def _strip_outcome(outcome: str, text: str) -> str:
+    """``text`` without a leading restatement of ``outcome`` (the summary says it once)."""
+    for prefix in (OUTCOME_WORDS[outcome] + ": ",) + _OUTCOME_PREFIXES.get(outcome, ()):
+        if text.lower().startswith(prefix):
+            return text[len(prefix):]
+    return text
 
 
 class FlightInterrupted(KeyboardInterrupt):
@@ -866,6 +890,10 @@ def _run_flight(
     if end_outcome is not None and outcome in ("reached", "missed", "safety_stop"):
         outcome = end_outcome
     if end_note:
+        if reason and end_outcome is not None:
+            # The outcome words head the summary once: "link lost: <why the flight
+            # ended>; no autopilot heartbeat ...", not "...; link lost: no ..." (PX4 SIH).
+            end_note = _strip_outcome(end_outcome, end_note)
         reason = f"{reason}; {end_note}" if reason else end_note
     signal_name = None
     if sigs.received is not None:
@@ -881,7 +909,7 @@ def _run_flight(
         "result",
         success=success,
         outcome=outcome,
-        exit_code=OUTCOMES[outcome],
+        exit_code=_exit_code(outcome, signal_name),  # 143 for SIGTERM, as the process exits
         reason=reason,
         steps=steps,
         final_cell=cell,

@@ -25,7 +25,8 @@ calls ``Offboard.stop()``. ``health.is_global_position_ok``/``is_armable`` are
 not used: they can stay false on ArduPilot while it flies.
 
 MAVSDK's own C++ log is routed into Python logging (logger ``mavsdk``,
-``mavsdk.logging.log_subscribe``) instead of raw lines on stdout; the
+``mavsdk.logging.log_subscribe``) instead of raw lines on stdout, with
+repeats folded (:class:`MavsdkLogForwarder`); the
 telemetry watchers restart after an error, and ``close()`` never raises.
 """
 
@@ -53,27 +54,81 @@ _MAVSDK_LOG = logging.getLogger("mavsdk")
 _log_routed = False
 
 
+class MavsdkLogForwarder:
+    """MAVSDK's C++ log lines into the ``mavsdk`` Python logger, repeats folded.
+
+    A link that is down makes MAVSDK log the same ERROR once or twice a second
+    (``Connect error: Connection refused`` while geonav waits for the autopilot,
+    ``Sending message failed`` after it died: about 100 lines in 17 s on
+    ArduCopter SITL), while geonav reports the outcome itself in one line. So a
+    message is logged at its own level the first time, and again at most once
+    per ``window_s`` with the number of repeats folded into it; every repeat in
+    between still goes out at DEBUG (``geonav -vv``).
+
+    Args:
+        logger: where the lines go (``mavsdk``).
+        window_s: how long identical messages are folded, s.
+        clock: monotonic seconds (tests pass a fake one).
+    """
+
+    #: MAVSDK ``LogLevel`` values (DEBUG 0, INFO 1, WARN 2, ERROR 3) -> logging levels.
+    LEVELS = {0: logging.DEBUG, 1: logging.INFO, 2: logging.WARNING, 3: logging.ERROR}
+
+    def __init__(
+        self,
+        logger: logging.Logger = _MAVSDK_LOG,
+        window_s: float = 10.0,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.logger, self.window_s, self.clock = logger, window_s, clock
+        self._lock = threading.Lock()
+        # message -> [time it was last logged at its own level, repeats since then]
+        self._seen: dict[str, list[float]] = {}
+
+    def __call__(self, level: Any, message: str, file: str | None, line: int) -> bool:
+        """MAVSDK's callback (called on MAVSDK's threads); True: MAVSDK prints nothing."""
+        try:
+            py_level = self.LEVELS.get(int(level), logging.INFO)
+            now = self.clock()
+            with self._lock:
+                seen = self._seen.get(message)
+                if seen is not None and now - seen[0] < self.window_s:
+                    seen[1] += 1
+                    folded = -1
+                else:
+                    folded = int(seen[1]) if seen is not None else 0
+                    self._seen[message] = [now, 0]
+                    if len(self._seen) > 256:  # bounded: drop the oldest entries
+                        for key in sorted(self._seen, key=lambda k: self._seen[k][0])[:128]:
+                            del self._seen[key]
+            where = f" ({file}:{line})" if file else ""
+            if folded < 0:
+                self.logger.debug("%s (repeat)%s", message, where)
+            elif folded:
+                self.logger.log(
+                    py_level, "%s (and %d more in %.0f s)", message, folded, self.window_s
+                )
+            else:
+                self.logger.log(py_level, "%s", message)
+        except Exception:  # noqa: BLE001 - never raise into MAVSDK's C++ thread
+            return False
+        return True
+
+
 def route_mavsdk_log() -> None:
-    """Send MAVSDK's C++ log lines to the ``mavsdk`` Python logger (once per process)."""
+    """Send MAVSDK's C++ log lines to the ``mavsdk`` Python logger (once per process).
+
+    Without this MAVSDK prints coloured ``[hh:mm:ss|Error] ...`` lines straight
+    to stdout, outside logging's levels and handlers.
+    """
     global _log_routed
     if _log_routed:
         return
     try:
-        from mavsdk.logging import LogLevel, log_subscribe
+        from mavsdk.logging import log_subscribe
     except ImportError:
         return
-    levels = {
-        LogLevel.DEBUG: logging.DEBUG,
-        LogLevel.INFO: logging.INFO,
-        LogLevel.WARN: logging.WARNING,
-        LogLevel.ERROR: logging.ERROR,
-    }
-
-    def forward(level: Any, message: str, file: str | None, line: int) -> bool:
-        _MAVSDK_LOG.log(levels.get(level, logging.INFO), "%s", message)
-        return True  # suppress MAVSDK's own printing
-
-    log_subscribe(forward)
+    log_subscribe(MavsdkLogForwarder())
     _log_routed = True
 
 

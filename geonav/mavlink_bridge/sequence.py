@@ -91,13 +91,31 @@ def wait_until(
 
 
 def wait_ready(vehicle: Vehicle, t: Timeouts) -> VehicleState:
-    """Wait until the autopilot left BOOT (HEARTBEAT system_status STANDBY or ACTIVE)."""
-    return wait_until(
-        vehicle,
-        lambda s: s.system_status in (M.MAV_STATE_STANDBY, M.MAV_STATE_ACTIVE),
-        t.ready_s,
-        "autopilot ready (HEARTBEAT system_status STANDBY)",
-    )
+    """Wait until the autopilot left BOOT (HEARTBEAT system_status STANDBY or ACTIVE).
+
+    PX4 reports STANDBY only while its pre-flight checks pass, and UNINIT
+    otherwise, also long after boot (seen on PX4 SIH after a landing:
+    "Preflight: GPS Vertical Pos Drift too high" for minutes): the timeout
+    then says so instead of naming the number.
+    """
+    try:
+        return wait_until(
+            vehicle,
+            lambda s: s.system_status in (M.MAV_STATE_STANDBY, M.MAV_STATE_ACTIVE),
+            t.ready_s,
+            "autopilot ready (HEARTBEAT system_status STANDBY)",
+        )
+    except FlightTimeout as err:
+        s = vehicle.state()
+        if s.autopilot == M.PX4 and s.system_status == M.MAV_STATE_UNINIT:
+            text = _fresh_text(s)
+            raise FlightTimeout(
+                f"PX4's pre-flight checks did not pass within {t.ready_s:.0f} s (HEARTBEAT "
+                f"system_status UNINIT, mode {s.mode}, armed {s.armed}"
+                + (f", autopilot says {text!r}" if text else "")
+                + "); see its health report in QGroundControl, or restart the SITL"
+            ) from err
+        raise
 
 
 def wait_position(vehicle: Vehicle, t: Timeouts, set_origin: LonLat | None = None) -> VehicleState:
