@@ -19,6 +19,7 @@ leave as float features ``(B, F)``.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import logging
 from pathlib import Path
@@ -290,7 +291,7 @@ def build_frozen_encoder(cfg: NetConfig) -> FrozenEncoder | None:
     if cfg.encoder == "corr":
         side, r = cfg.obs_size_px // 2, cfg.corr_radius
         return FrozenEncoder(GreyMap(), (2 * r + 1) ** 2, {"kind": "corr", "radius": r},
-                             pair=lambda a, b: view_correlation(a, b, side, r))
+                             pair=functools.partial(view_correlation, side=side, radius=r))
     if cfg.encoder == "resnet18":
         trunk, dim = resnet18_trunk(cfg.encoder_weights)
         net = nn.Sequential(_ResNetInput(224), trunk)

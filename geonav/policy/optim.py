@@ -67,8 +67,9 @@ def warm_up_lr(optimizer: torch.optim.Optimizer, lr: float, warmup: int) -> None
     continues its ramp). ``warmup <= 0`` leaves the rate at ``lr``.
 
     Fine-tuning a trained policy with a fresh Adam moves every weight by about ``lr`` on
-    each of the first steps, whatever its gradient (Adam normalises by the first moments);
-    a linear ramp keeps those first steps small.
+    each of the first steps, whatever its gradient (Adam divides by the root of its
+    second-moment estimate, which starts from the first gradients themselves); a linear
+    ramp keeps those first steps small.
     """
     if warmup <= 0:
         return
