@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 from collections.abc import Sequence
 from pathlib import Path
@@ -59,7 +61,8 @@ class GeoNavEnv(gym.Env[dict[str, np.ndarray], np.int64]):
     (BFS steps from this episode's start, for SPL), ``collided``, ``success``,
     ``is_success`` (the same flag under the name Stable-Baselines3 reads for
     ``rollout/success_rate`` and ``EvalCallback``), ``task``, ``task_index``,
-    ``alt_m``, ``steps``.
+    ``task_key`` (a hash of the scene, the task and the camera: names the task's views
+    in caches that several envs share), ``alt_m``, ``steps``.
 
     ## Memory and pickling
     Observations are read-only slices of one prefiltered map per altitude
@@ -121,6 +124,12 @@ class GeoNavEnv(gym.Env[dict[str, np.ndarray], np.int64]):
         if not task_list:
             raise TaskError("GeoNavEnv needs at least one task")
         self.task_maps: list[TaskMap] = [bind(t, self.scene, self.camera) for t in task_list]
+        # what names a task's views in caches shared across envs (the frozen encoder's)
+        cam = json.dumps([self.camera.size_px, self.camera.fov_deg])
+        self._task_keys = [
+            f"{self.scene.identity}:" + hashlib.sha256(
+                (cam + json.dumps(t.to_dict(), sort_keys=True)).encode()).hexdigest()[:16]
+            for t in task_list]
         self.max_steps_override = max_steps
         self.success_reward = float(success_reward)
         self.step_reward = float(step_reward)
@@ -182,6 +191,10 @@ class GeoNavEnv(gym.Env[dict[str, np.ndarray], np.int64]):
         self._views = [{} for _ in self.task_maps]
         self.observation_space = self._observation_space()
         self._target_obs = self.observation_at(self._ti, self._tm.task.target_cell)
+
+    def task_key(self, task_index: int) -> str:
+        """A task's ``info["task_key"]``: a hash of its scene, definition and camera."""
+        return self._task_keys[task_index]
 
     def max_steps_of(self, task_index: int) -> int:
         return self.max_steps_override or self.task_maps[task_index].task.max_steps
@@ -287,6 +300,7 @@ class GeoNavEnv(gym.Env[dict[str, np.ndarray], np.int64]):
             "is_success": success,
             "task": tm.task.name,
             "task_index": self._ti,
+            "task_key": self._task_keys[self._ti],
             "alt_m": tm.task.alt_m,
             "steps": self._steps,
         }

@@ -163,6 +163,24 @@ class Scene:
         return cls(name, np.ascontiguousarray(rgb), mask.astype(bool), float(gsd_m),
                    transform, origin, None if dsm is None else dsm.astype(np.float32))
 
+    @property
+    def identity(self) -> str:
+        """A short content hash of the scene (name, grid, a strided sample of the pixels
+        and of the DSM): what names it in caches shared by several envs. Unlike
+        :attr:`scene_id` (the grid only) it tells apart two scenes on the same grid.
+        Computed once."""
+        ident = self.__dict__.get("_identity")
+        if ident is None:
+            h = hashlib.sha256()
+            h.update(json.dumps([self.name, list(self.rgb.shape), list(self.transform)[:6],
+                                 self.gsd_m]).encode())
+            stride = max(1, int(math.sqrt(self.rgb.shape[0] * self.rgb.shape[1] / 250_000)))
+            h.update(np.ascontiguousarray(self.rgb[::stride, ::stride]).tobytes())
+            if self.dsm is not None:
+                h.update(np.ascontiguousarray(self.dsm[::stride, ::stride]).tobytes())
+            ident = self.__dict__["_identity"] = h.hexdigest()[:16]
+        return ident
+
     # -- geometry ---------------------------------------------------------------------
     @property
     def width(self) -> int:

@@ -334,6 +334,7 @@ class LatticeVecEnv:
                 "collided": bool(collided), "success": cell == tm.task.target_cell,
                 "is_success": cell == tm.task.target_cell,
                 "task": tm.task.name, "task_index": int(self.task[slot]),
+                "task_key": self.env.task_key(int(self.task[slot])),
                 "alt_m": tm.task.alt_m, "steps": int(self.steps[slot]),
                 **({} if self.augment is None
                    else {"augment_variant": int(self.variant[slot])})}

@@ -55,3 +55,26 @@ def test_resnet_from_local_weights(tmp_path):
     torch.save(resnet18(weights=None).state_dict(), path)
     enc = build_frozen_encoder(NetConfig(encoder="resnet18", encoder_weights=str(path)))
     assert enc.encode(np.zeros((84, 84, 3), np.uint8)).shape == (1, 512)
+
+
+def test_one_encoder_serves_envs_on_different_scenes():
+    """The cache key names the scene and the task, so a second env's views are not the
+    first env's features (same task index, cell and altitude, different imagery)."""
+    from geonav.env import GeoNavEnv
+    from geonav.testing import textured_scene, tiny_taskset
+
+    enc = build_frozen_encoder(NetConfig(encoder="random"))
+    feats, infos = [], []
+    for seed in (0, 1):
+        scene = textured_scene(300.0, seed=seed, towers=False)
+        obs, info = GeoNavEnv(scene, tiny_taskset(scene)).reset(
+            seed=0, options={"start_cell": (0, 0)})
+        infos.append(info)
+        feats.append(enc.features(obs["image"], cache_key(info)))
+    assert infos[0]["task_index"] == infos[1]["task_index"]
+    assert infos[0]["task_key"] != infos[1]["task_key"]
+    assert enc.misses == 2 and not torch.equal(feats[0], feats[1])
+    # the same scene and task built again gives the same key (a cache hit)
+    scene = textured_scene(300.0, seed=0, towers=False)
+    _, info = GeoNavEnv(scene, tiny_taskset(scene)).reset(seed=0, options={"start_cell": (0, 0)})
+    assert info["task_key"] == infos[0]["task_key"]

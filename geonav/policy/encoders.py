@@ -3,7 +3,8 @@ parameter-free view correlation.
 
 Trainable encoders live inside the actor-critic (their parameters are learned);
 frozen ones live outside it, in a :class:`FrozenEncoder` with a feature cache
-keyed by (task, cell, altitude), so each view is encoded once per process.
+keyed by (task, cell, altitude), so each view is encoded once per process; the task
+part names the scene and the task's content, so envs may share one encoder.
 
 The correlation encoder (``encoder='corr'``) is *pairwise*: a view's features are its
 normalised cross-correlation with the episode's target view at every shift within
@@ -35,8 +36,9 @@ from geonav.policy.config import NetConfig
 
 log = logging.getLogger(__name__)
 
-CacheKey = tuple[int, tuple[int, int], float] | tuple[int, tuple[int, int], float, int]
-"""(task index, cell, altitude), plus the imagery variant when the env is randomised."""
+CacheKey = (tuple[int | str, tuple[int, int], float]
+            | tuple[int | str, tuple[int, int], float, int])
+"""(task key or index, cell, altitude), plus the imagery variant when the env is randomised."""
 
 _IMAGENET_MEAN = (0.485, 0.456, 0.406)
 _IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -201,7 +203,9 @@ class FrozenEncoder:
     """A frozen image encoder with a per-process feature cache.
 
     ``encode(images)`` runs the network; ``features(image, key)`` looks the view up
-    by ``key = (task_index, cell, alt_m)`` and encodes it only the first time. A
+    by ``key = (task, cell, alt_m)`` (``cache_key``: the task is its env's ``task_key``,
+    which names the scene, so one encoder serves several envs) and encodes it only the
+    first time. A
     *pairwise* encoder (``pair`` given: the correlation encoder) turns ``encode``'s maps
     of a view and of its target into the features (``combine``), so ``features`` needs
     the target image; the cache key (task, cell, altitude) fixes the target.
@@ -266,7 +270,10 @@ class FrozenEncoder:
 def cache_key(info: dict[str, Any], *, target: bool = False) -> CacheKey:
     """The feature-cache key of the current view (or of the target view) from an env info."""
     cell = info["target_cell"] if target else info["cell"]
-    key = (int(info["task_index"]), (int(cell[0]), int(cell[1])), float(info["alt_m"]))
+    # the task's key names its scene, lattice, target and camera, so one encoder serves
+    # several envs; infos without it (hand-made ones) fall back to the task's index
+    task = info.get("task_key", int(info["task_index"]))
+    key = (task, (int(cell[0]), int(cell[1])), float(info["alt_m"]))
     if "augment_variant" in info:  # geonav.wrappers.ImageryRandomisation: one view per variant
         return (*key, int(info["augment_variant"]))
     return key
