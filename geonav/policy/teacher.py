@@ -89,7 +89,7 @@ def view_at(env: Any, frozen: FrozenEncoder | None, task_index: int,
     u = env.unwrapped
     c = (int(cell[0]), int(cell[1]))
     alt = float(u.tasks[task_index].alt_m)
-    key = (task_index, c, alt) if frozen is not None else None
+    key = (u.task_key(task_index), c, alt) if frozen is not None else None
     target = None
     if frozen is not None and frozen.pairwise:
         target = u.observation_at(task_index, tuple(u.tasks[task_index].target_cell))
