@@ -196,50 +196,60 @@ class SlotAdam:
     A step moves only the live slots, so each slot's moments and bias corrections are
     those of its own ``torch.optim.Adam`` (the reference's fresh in-task Adam per task
     visit), also when the slots' episodes end at different windows and the next episode
-    of the visit (E > 1) goes on with them. The update is torch's Adam (L2-free):
-    m <- beta1 m + (1 - beta1) g, v <- beta2 v + (1 - beta2) g^2 (amsgrad: the running
-    max of v), p <- p - lr / (1 - beta1^t) * m / (sqrt(v) / sqrt(1 - beta2^t) + eps).
+    of the visit (E > 1) goes on with them. The update is torch's fused Adam kernel
+    (``torch._fused_adam_``, L2-free, the reference's default ``fused = True``), called
+    once per window on every live slot's views of every parameter (slot s's rows of the
+    stacked tensors, with slot s's step count): one pass over the memory, where the
+    elementwise form took about a dozen and 40 % of a meta-iteration.
     """
 
     def __init__(self, params: list[torch.Tensor], lr: float, betas: tuple[float, float],
                  eps: float, amsgrad: bool) -> None:
         self.params, self.lr, self.betas, self.eps, self.amsgrad = params, lr, betas, eps, \
             amsgrad
-        self.steps = torch.zeros(params[0].shape[0], dtype=torch.float64,
-                                 device=params[0].device)
+        b = params[0].shape[0]
+        # one 0-dim step tensor per slot, float32 as torch's fused Adam keeps its steps
+        self.steps = [torch.zeros((), dtype=torch.float32, device=params[0].device)
+                      for _ in range(b)]
         self.m = [torch.zeros_like(p) for p in params]
         self.v = [torch.zeros_like(p) for p in params]
         self.v_max = [torch.zeros_like(p) for p in params] if amsgrad else []
+        # slot s's rows of every parameter and moment (views, so the kernel writes in place)
+        self._views = [self._slot_views(s) for s in range(b)]
+
+    def _slot_views(self, s: int) -> tuple[list[torch.Tensor], ...]:
+        return ([p.detach()[s] for p in self.params], [m[s] for m in self.m],
+                [v[s] for v in self.v], [v[s] for v in self.v_max])
 
     def reset(self) -> None:
         """Step 0, zero moments (a fresh Adam for every slot)."""
-        self.steps.zero_()
-        for x in (*self.m, *self.v, *self.v_max):
-            x.zero_()
+        torch._foreach_zero_([*self.steps, *self.m, *self.v, *self.v_max])
 
     @torch.no_grad()
     def step(self, grads: list[torch.Tensor], live: torch.Tensor) -> None:
-        """One Adam step of the slots where ``live`` (B,) bool, with ``grads`` (B, ...)."""
+        """One Adam step of the slots where ``live`` (B,) bool, with ``grads`` (B, ...)
+        (contiguous, as the parameters)."""
+        params: list[torch.Tensor] = []
+        gs: list[torch.Tensor] = []
+        ms: list[torch.Tensor] = []
+        vs: list[torch.Tensor] = []
+        vm: list[torch.Tensor] = []
+        steps: list[torch.Tensor] = []
+        for s in torch.nonzero(live.cpu()).flatten().tolist():
+            self.steps[s].add_(1.0)
+            p, m, v, w = self._views[s]
+            params += p
+            gs += [g[s] for g in grads]
+            ms += m
+            vs += v
+            vm += w
+            steps += [self.steps[s]] * len(p)
+        if not params:
+            return
         b1, b2 = self.betas
-        every = bool(live.all())
-        self.steps += live.to(self.steps.dtype)
-        t = self.steps.clamp(min=1.0)
-        step_size = self.lr / (1.0 - b1 ** t)                                   # (B,)
-        bc2_sqrt = (1.0 - b2 ** t).sqrt()
-        for i, (p, g) in enumerate(zip(self.params, grads, strict=True)):
-            shape = (-1,) + (1,) * (p.dim() - 1)
-            keep = live.view(shape)
-            m = self.m[i].lerp(g, 1.0 - b1)
-            v = self.v[i] * b2 + (1.0 - b2) * g * g
-            vv = v
-            if self.amsgrad:
-                vv = torch.maximum(self.v_max[i], v)
-                self.v_max[i].copy_(vv if every else torch.where(keep, vv, self.v_max[i]))
-            denom = vv.sqrt() / bc2_sqrt.to(p.dtype).view(shape) + self.eps
-            new = p - step_size.to(p.dtype).view(shape) * m / denom
-            self.m[i].copy_(m if every else torch.where(keep, m, self.m[i]))
-            self.v[i].copy_(v if every else torch.where(keep, v, self.v[i]))
-            p.copy_(new if every else torch.where(keep, new, p))
+        torch._fused_adam_(params, gs, ms, vs, vm, steps, amsgrad=self.amsgrad, lr=self.lr,
+                           beta1=b1, beta2=b2, weight_decay=0.0, eps=self.eps,
+                           maximize=False, grad_scale=None, found_inf=None)
 
 
 def psi_layout(g: torch.Tensor) -> torch.Tensor:
