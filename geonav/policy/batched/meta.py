@@ -65,6 +65,7 @@ from geonav.errors import ConfigError
 from geonav.policy.batched.core import (
     Adapted,
     Recorder,
+    back_grads,
     factored_step,
     layer_grads,
     sample_actions,
@@ -401,33 +402,29 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
         return terms, state, finals
 
     def window_grads(self, loss: torch.Tensor, phi: dict[str, torch.Tensor],
-                     views: ViewBases, entries: list[Any], second_order: bool
+                     views: ViewBases, entries: list[Any], back: list[Any]
                      ) -> list[torch.Tensor]:
         """grad_phi^s of the window's loss for every slot, (B, ...) per parameter.
 
-        A weight that enters the loss only through recorded products x W (no inner step
-        differentiates through it) has the gradient sum_t x_t^T u_t from the output
-        gradients u (:func:`~geonav.policy.batched.core.layer_grads`), one batched
-        product per layer instead of an outer product per step: the view embeddings
-        (constant inputs, evaluated once per window), every layer in first order, and in
-        second order the last segment's uses (``entries``: those recorded maps, run with
-        the weights detached); autograd gives the rest, through the inner steps.
+        No parameter has a gradient edge in the graph: every use of a per-slot weight is a
+        recorded map y = x W_s + b_s (its gradients sum_t x_t^T u_t and sum_t u_t from the
+        output gradients u, :func:`~geonav.policy.batched.core.layer_grads`) or, in second
+        order, a recorded backward product g_x = g_y W_s^T of an inner step
+        (:func:`~geonav.policy.batched.core.back_grads`); the view embeddings' come from
+        their leaves (constant inputs, evaluated once per window). One ``autograd.grad``
+        w.r.t. those outputs, then one batched product per layer instead of an outer
+        product per step.
         """
         names = list(phi)
         entries = [en for en in entries if en[0] not in ("obs_embed", "target_embed")]
         ys = list({id(y): y for _, _, y, _ in entries}.values())
-        direct = [n for n in names if n not in VIEW_PARAMS] if second_order else []
+        gxs = [gx for _, gx, _ in back]
         leaves = views.leaves()
-        gs = torch.autograd.grad(loss, [phi[n] for n in direct] + ys + leaves,
-                                 allow_unused=True)
-        out = {n: torch.zeros_like(phi[n]) if g is None else g
-               for n, g in zip(direct, gs, strict=False)}
-        recorded = layer_grads(entries, {id(y): g for y, g in
-                                         zip(ys, gs[len(direct):], strict=False)})
-        for n, g in recorded.items():
-            if not (second_order and g.dim() == 2):  # autograd has the biases' uses
-                out[n] = out[n] + g if n in out else g
-        out.update(views.grads(gs[len(direct) + len(ys):]))
+        gs = torch.autograd.grad(loss, ys + gxs + leaves, allow_unused=True)
+        out = layer_grads(entries, {id(y): g for y, g in zip(ys, gs, strict=False)})
+        for n, g in back_grads(back, list(gs[len(ys):len(ys) + len(gxs)])).items():
+            out[n] = out[n] + g
+        out.update(views.grads(gs[len(ys) + len(gxs):]))
         # contiguous: the fused Adam steps a parameter with its gradient's memory order
         return [out[n].contiguous() if n in out else torch.zeros_like(phi[n]) for n in names]
 
@@ -499,23 +496,19 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
         finals: list[dict[str, Any]] = []
         pl = vl = ent = 0.0
         live_segments = 0
-        # where every weight gradient comes from the recorded output gradients (first
-        # order; the last segment of a window in second order), the forward need not
-        # track the weights (the biases keep every output in the graph)
-        untracked = {n: x.detach() if x.dim() == 3 else x for n, x in phi.items()}
         while alive.any():  # one window of up to K segments, then each slot's Adam step
             live_window = torch.from_numpy(alive.copy()).to(dev)
             adapted: Adapted = {}
             window: list[torch.Tensor] = []
             entries: list[Any] = []
+            back: list[Any] = []
             views = self.view_bases(phi)
             adapt += alive
             for j in range(k):
                 live_segments += int(alive.sum())
                 last = j == k - 1
                 rec = Recorder(gram=self.gram)
-                terms, state, fin = self.segment(untracked if last or not second_order
-                                                 else phi, adapted, state, alive, views, rec)
+                terms, state, fin = self.segment(phi, adapted, state, alive, views, rec)
                 for f in fin:
                     f["inner_updates"] = int(inner[f["slot"]])
                     f["adaptive_updates"] = int(adapt[f["slot"]])
@@ -523,8 +516,7 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
                 window.append(terms.total)
                 pl, vl = pl + float(terms.policy.detach()), vl + float(terms.value.detach())
                 ent += float(terms.entropy.detach())
-                if last or not second_order:
-                    entries += rec.entries
+                entries += rec.entries
                 if not alive.any():
                     break
                 if not last:
@@ -532,8 +524,8 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
                     adapted = rec.inner_factors(terms.total, adapted, cfg.alpha,
                                                 create_graph=second_order, weights=live)
                     inner += alive
-            grads = self.window_grads(torch.stack(window).sum(), phi, views, entries,
-                                      second_order)
+                    back += rec.back
+            grads = self.window_grads(torch.stack(window).sum(), phi, views, entries, back)
             torch._foreach_add_(task_grads, grads)                 # g_i: unclipped
             clip_per_slot(grads, cfg.max_grad_norm)
             opt.step(grads, live_window)
@@ -542,10 +534,6 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
             f["t0"] = float(self.t_episode[f["slot"]])
         sums += [pl, vl, ent]
         return finals, live_segments
-
-
-VIEW_PARAMS = ("obs_embed.weight", "obs_embed.bias", "target_embed.weight",
-               "target_embed.bias")
 
 
 class ViewBases:
