@@ -536,6 +536,11 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
         return finals, live_segments
 
 
+PRE_TABLE_VIEWS_PER_STEP = 12
+"""The window's view-embedding table of every view of the slots' tasks is built when the
+largest task has at most this many views per step of the window (:class:`ViewBases`)."""
+
+
 class ViewBases:
     """The view embeddings' W_s x + b_s of one window under per-slot phi^s, without graph,
     and their gradients from the output gradients.
@@ -556,7 +561,11 @@ class ViewBases:
         self.first = torch.from_numpy(venv.offsets[tasks]).to(table.device)
         w, bias = phi["obs_embed.weight"].detach(), phi["obs_embed.bias"].detach()
         self.pre: torch.Tensor | None = None
-        if int(sizes.max()) <= 4 * schedule[0] * schedule[1]:  # cheaper than per step
+        # one (C, F) x (F, E) product per slot and window runs at the arithmetic's speed,
+        # a row per step at memory speed (it reads the slot's (F, E) weights each time):
+        # measured here, the table of C views costs about C / 20 steps' products, and it
+        # keeps the per-step working set (the other layers' weights of every slot) in cache
+        if int(sizes.max()) <= PRE_TABLE_VIEWS_PER_STEP * schedule[0] * schedule[1]:
             rows = self.first[:, None] + torch.arange(int(sizes.max()), device=table.device)
             rows = torch.minimum(rows, torch.from_numpy(venv.offsets[tasks] + sizes - 1)
                                  .to(table.device)[:, None])
