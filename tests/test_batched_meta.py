@@ -103,7 +103,7 @@ def force_actions(monkeypatch, script):
     monkeypatch.setattr(a3c_mod, "choose_action", ref_choose)
     box = {}
 
-    def bat_sample(logits, rng):
+    def bat_sample(logits, rng, live=None):
         v = box["trainer"].venv
         return torch.tensor([int(script[v.task[s]][min(v.steps[s], L - 1)])
                              for s in range(v.n_slots)])

@@ -227,20 +227,20 @@ class SlotAdam:
         torch._foreach_zero_([*self.steps, *self.m, *self.v, *self.v_max])
 
     @torch.no_grad()
-    def step(self, grads: list[torch.Tensor], live: torch.Tensor) -> None:
-        """One Adam step of the slots where ``live`` (B,) bool, with ``grads`` (B, ...)
-        (contiguous, as the parameters)."""
+    def step(self, grads: list[torch.Tensor], slots: list[int]) -> None:
+        """One Adam step of the slots ``slots`` with ``grads`` (len(slots), ...), row i
+        slot ``slots[i]``'s (contiguous, as the parameters)."""
         params: list[torch.Tensor] = []
         gs: list[torch.Tensor] = []
         ms: list[torch.Tensor] = []
         vs: list[torch.Tensor] = []
         vm: list[torch.Tensor] = []
         steps: list[torch.Tensor] = []
-        for s in torch.nonzero(live.cpu()).flatten().tolist():
+        for i, s in enumerate(slots):
             self.steps[s].add_(1.0)
             p, m, v, w = self._views[s]
             params += p
-            gs += [g[s] for g in grads]
+            gs += [g[i] for g in grads]
             ms += m
             vs += v
             vm += w
@@ -350,46 +350,62 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
                 g.zero_()
         return phi, opt, task_grads
 
-    def view_bases(self, phi: dict[str, torch.Tensor]) -> ViewBases:
-        """The window's view embeddings W x + b under every slot's phi^s (no graph)."""
+    def view_bases(self, phi: dict[str, torch.Tensor], rows: np.ndarray) -> ViewBases:
+        """The window's view embeddings W x + b under the ``rows`` slots' phi^s (no graph)."""
         assert self.table is not None
-        return ViewBases(phi, self.table, self.venv, self.schedule())
+        return ViewBases(phi, self.table, self.venv, self.schedule(), rows)
 
     def segment(self, phi: dict[str, torch.Tensor], adapted: Adapted, state: State,
-                alive: np.ndarray, views: ViewBases, rec: Recorder | None
-                ) -> tuple[LossTerms, State, list[dict[str, Any]]]:
+                alive: np.ndarray, views: ViewBases, rec: Recorder | None,
+                rows: np.ndarray) -> tuple[LossTerms, State, list[dict[str, Any]]]:
         """Up to N lock-step steps with the graph under theta_s = phi^s + factors, the
         linear maps recorded in ``rec``: (the live slots' summed segment loss, the state,
-        the finished episodes). ``alive`` (B,) is updated in place."""
+        the finished episodes). The network runs on the window's slots ``rows`` (the
+        slots live at its start, ascending; ``phi``, ``adapted`` and ``state`` hold their
+        rows only); ``alive`` (B,) is updated in place."""
         lc, e, dev = self.cfg.loss, self.net_cfg.embed_dim, self.device
         logits, values, actions, masks, rewards, ends, end_values = [], [], [], [], [], [], []
         finals: list[dict[str, Any]] = []
         assert self.table is not None
         table = self.table
+        every = len(rows) == self.batch
+        rows_t = None if every else torch.from_numpy(rows).to(dev)
+
+        # with the Gram matrix the view embeddings' factors look their inputs up by row
+        # index and their bases come from ViewBases: the feature rows themselves are not
+        # read, so a zero placeholder of their shape saves two gathers per step
+        blank = table.new_zeros(len(rows), table.shape[1]) if self.gram is not None else None
 
         def step(st: State, r: Recorder | None, leaf: bool) -> tuple[Any, Any, State]:
             vi, ti = self.slot_indices()
-            return factored_step(phi, e, table[vi], table[ti], st, adapted, r, None, vi, ti,
+            if rows_t is not None:
+                vi, ti = vi[rows_t], ti[rows_t]
+            obs_f, tgt_f = (blank, blank) if blank is not None else (table[vi], table[ti])
+            return factored_step(phi, e, obs_f, tgt_f, st, adapted, r, None, vi, ti,
                                  self.prev_features(vi), views.obs(vi, leaf), views.target)
 
         for _ in range(self.schedule()[0]):
             if not alive.any():
                 break
+            live = alive[rows]
             logit, value, state = step(state, rec, True)
-            a = sample_actions(logit, self.rng).to(dev)
-            res = self.venv.step(a.cpu().numpy(), autoreset=False)
+            full = logit if every else logit.new_zeros(self.batch, logit.shape[1]) \
+                .index_copy(0, rows_t, logit.detach())  # type: ignore[arg-type]
+            act = sample_actions(full, self.rng, alive)  # draws for the live slots only
+            res = self.venv.step(act.numpy(), autoreset=False)
+            a = act.to(dev) if every else act[torch.from_numpy(rows)].to(dev)
             if lc.bootstrap_on_truncation:  # V(s) at a truncation under theta_s (no reset)
-                end_values.append(np.zeros(len(alive)))
+                end_values.append(np.zeros(len(rows)))
                 if (res.truncated & alive).any():
                     with torch.no_grad():
                         v_end = step(state, None, False)[1]
-                    end_values[-1] = np.where(res.truncated, v_end.cpu().numpy(), 0.0)
+                    end_values[-1] = np.where(res.truncated[rows], v_end.cpu().numpy(), 0.0)
             logits.append(logit)
             values.append(value)
             actions.append(a)
-            masks.append(torch.from_numpy(alive.copy()))
-            rewards.append(np.where(alive, res.rewards, 0.0))
-            ends.append(res.done & alive)
+            masks.append(torch.from_numpy(live))
+            rewards.append(np.where(live, res.rewards[rows], 0.0))
+            ends.append(res.done[rows] & live)
             finals += [f for f in res.final if alive[f["slot"]]]
             alive &= ~res.done
         with torch.no_grad():  # V(s_next) under theta_s, without advancing the state
@@ -497,18 +513,28 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
         pl = vl = ent = 0.0
         live_segments = 0
         while alive.any():  # one window of up to K segments, then each slot's Adam step
-            live_window = torch.from_numpy(alive.copy()).to(dev)
+            # the window runs on the slots live at its start only (a finished episode's
+            # slot waits for the others without costing a row): their phi^i rows copied
+            # (a few ms, against a window's steps) and their state's rows
+            rows = np.flatnonzero(alive)
+            if len(rows) == b:
+                phi_w, state_w = phi, state
+            else:
+                idx = torch.from_numpy(rows).to(dev)
+                phi_w = {n: x.detach()[idx].requires_grad_() for n, x in phi.items()}
+                state_w = tuple(x[idx] for x in state)  # type: ignore[assignment]
             adapted: Adapted = {}
             window: list[torch.Tensor] = []
             entries: list[Any] = []
             back: list[Any] = []
-            views = self.view_bases(phi)
+            views = self.view_bases(phi_w, rows)
             adapt += alive
             for j in range(k):
                 live_segments += int(alive.sum())
                 last = j == k - 1
                 rec = Recorder(gram=self.gram)
-                terms, state, fin = self.segment(phi, adapted, state, alive, views, rec)
+                terms, state_w, fin = self.segment(phi_w, adapted, state_w, alive, views, rec,
+                                                   rows)
                 for f in fin:
                     f["inner_updates"] = int(inner[f["slot"]])
                     f["adaptive_updates"] = int(adapt[f["slot"]])
@@ -520,16 +546,22 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
                 if not alive.any():
                     break
                 if not last:
-                    live = torch.from_numpy(alive).to(dev, dtype)
+                    live = torch.from_numpy(alive[rows]).to(dev, dtype)
                     adapted = rec.inner_factors(terms.total, adapted, cfg.alpha,
                                                 create_graph=second_order, weights=live)
                     inner += alive
                     back += rec.back
-            grads = self.window_grads(torch.stack(window).sum(), phi, views, entries, back)
-            torch._foreach_add_(task_grads, grads)                 # g_i: unclipped
+            grads = self.window_grads(torch.stack(window).sum(), phi_w, views, entries, back)
+            if len(rows) == b:                                     # g_i: unclipped
+                torch._foreach_add_(task_grads, grads)
+                state = detach_state(state_w)
+            else:
+                for g_i, g in zip(task_grads, grads, strict=True):
+                    g_i.index_add_(0, idx, g)
+                state = tuple(x.detach().index_copy(0, idx, y.detach())  # type: ignore
+                              for x, y in zip(state, state_w, strict=True))
             clip_per_slot(grads, cfg.max_grad_norm)
-            opt.step(grads, live_window)
-            state = detach_state(state)
+            opt.step(grads, rows.tolist())
         for f in finals:
             f["t0"] = float(self.t_episode[f["slot"]])
         sums += [pl, vl, ent]
@@ -552,11 +584,10 @@ class ViewBases:
     """
 
     def __init__(self, phi: dict[str, torch.Tensor], table: torch.Tensor,
-                 venv: LatticeVecEnv, schedule: tuple[int, int]) -> None:
+                 venv: LatticeVecEnv, schedule: tuple[int, int], rows: np.ndarray) -> None:
         self.phi, self.table = phi, table
-        b = len(venv.slot_tasks)
-        self.slots = torch.arange(b, device=table.device)
-        tasks = venv.task
+        self.slots = torch.arange(len(rows), device=table.device)
+        tasks = venv.task[rows]
         sizes = venv.nx[tasks] * venv.ny[tasks]
         self.first = torch.from_numpy(venv.offsets[tasks]).to(table.device)
         w, bias = phi["obs_embed.weight"].detach(), phi["obs_embed.bias"].detach()
@@ -566,10 +597,10 @@ class ViewBases:
         # measured here, the table of C views costs about C / 20 steps' products, and it
         # keeps the per-step working set (the other layers' weights of every slot) in cache
         if int(sizes.max()) <= PRE_TABLE_VIEWS_PER_STEP * schedule[0] * schedule[1]:
-            rows = self.first[:, None] + torch.arange(int(sizes.max()), device=table.device)
-            rows = torch.minimum(rows, torch.from_numpy(venv.offsets[tasks] + sizes - 1)
-                                 .to(table.device)[:, None])
-            self.pre = torch.baddbmm(bias.unsqueeze(1), table[rows], w)
+            cells = self.first[:, None] + torch.arange(int(sizes.max()), device=table.device)
+            cells = torch.minimum(cells, torch.from_numpy(venv.offsets[tasks] + sizes - 1)
+                                  .to(table.device)[:, None])
+            self.pre = torch.baddbmm(bias.unsqueeze(1), table[cells], w)
         tgt = torch.from_numpy(venv.target_view[tasks]).to(table.device)
         self.target_rows = tgt
         self.target = torch.baddbmm(phi["target_embed.bias"].detach().unsqueeze(1),
@@ -606,8 +637,8 @@ class ViewBases:
         ut = z if gs[-1] is None else gs[-1]
         return {"obs_embed.weight": torch.bmm(x.transpose(1, 2), u),          # (B, F, E)
                 "obs_embed.bias": u.sum(1),
-                "target_embed.weight": self.table[self.target_rows].unsqueeze(-1)
-                * ut.unsqueeze(1), "target_embed.bias": ut}
+                "target_embed.weight": torch.bmm(self.table[self.target_rows].unsqueeze(-1),
+                                                 ut.unsqueeze(1)), "target_embed.bias": ut}
 
 
 class BatchedMetaA3C(BatchedMetaISAR):
