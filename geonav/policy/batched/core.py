@@ -255,6 +255,49 @@ class Recorder:
         return out
 
 
+class AtPsi(dict):  # type: ignore[type-arg]
+    """Per-slot parameters phi^s of meta-training while every slot's weights still equal
+    psi (before a task's first in-task Adam step): the weights are psi's own (out, in)
+    tensors, shared, the biases the slots' (B, out) leaves. Each product is then one
+    matrix product over the B rows (:class:`SharedProduct`) instead of B products that
+    read B copies of the weights, with the same per-slot gradients from the records."""
+
+
+class SharedProduct(torch.autograd.Function):
+    """y = x W^T for a weight W (out, in) shared by the B rows of x (B, in), with no
+    gradient for W: as :class:`SlotProduct` (whose per-slot gradients it gives, from the
+    same records), for slots whose weights are all equal."""
+
+    @staticmethod
+    def forward(ctx: Any, x: torch.Tensor, w: torch.Tensor, key: str,
+                sink: Recorder | None) -> torch.Tensor:
+        ctx.save_for_backward(w)
+        ctx.key, ctx.sink = key, sink
+        return x @ w.t()
+
+    @staticmethod
+    def backward(ctx: Any, gy: torch.Tensor) -> tuple[Any, ...]:
+        (w,) = ctx.saved_tensors
+        gx = SharedProductT.apply(gy, w)
+        if torch.is_grad_enabled() and gx.requires_grad and ctx.sink is not None:
+            ctx.sink.back.append((ctx.key, gx, gy.detach()))
+        return gx, None, None, None
+
+
+class SharedProductT(torch.autograd.Function):
+    """g_x = g_y W, the backward product of :class:`SharedProduct` (no gradient for W)."""
+
+    @staticmethod
+    def forward(ctx: Any, gy: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+        ctx.save_for_backward(w)
+        return gy @ w
+
+    @staticmethod
+    def backward(ctx: Any, ggx: torch.Tensor) -> tuple[Any, ...]:
+        (w,) = ctx.saved_tensors
+        return ggx @ w.t(), None
+
+
 class RunParams(dict):  # type: ignore[type-arg]
     """Parameters of packed runs: name -> the R runs' tensors stacked, (R, ...) each
     (:mod:`geonav.policy.batched.packed`); a slot's rows are those of its run."""
@@ -373,6 +416,8 @@ def linear(params: Params, key: str, x: torch.Tensor, adapted: Adapted | None,
     w, b = params[wname], params[bname]
     if base is not None:
         y = base.clone()  # a node per call: the recorder's entries must not share outputs
+    elif isinstance(params, AtPsi):  # phi^s = psi for every slot: shared (out, in) weights
+        y = SharedProduct.apply(x, w.detach(), key, rec if rec is not None else back) + b
     elif isinstance(params, RunParams):  # packed runs: (R, out, in), run r's rows
         y = affine(x, w, b)
     elif w.dim() == 3:  # per-slot (B, in, out) weights, (B, out) biases: meta-training's phi^i

@@ -64,6 +64,7 @@ import torch
 from geonav.errors import ConfigError
 from geonav.policy.batched.core import (
     Adapted,
+    AtPsi,
     Recorder,
     back_grads,
     factored_step,
@@ -417,10 +418,11 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
                                  [torch.stack(masks).to(dev, vs.dtype)])
         return terms, state, finals
 
-    def window_grads(self, loss: torch.Tensor, phi: dict[str, torch.Tensor],
+    def window_grads(self, loss: torch.Tensor, phi: dict[str, torch.Tensor], n_rows: int,
                      views: ViewBases, entries: list[Any], back: list[Any]
                      ) -> list[torch.Tensor]:
-        """grad_phi^s of the window's loss for every slot, (B, ...) per parameter.
+        """grad_phi^s of the window's loss for each of its ``n_rows`` slots, (n_rows, ...)
+        per parameter (``phi``: every slot's, for the names and shapes).
 
         No parameter has a gradient edge in the graph: every use of a per-slot weight is a
         recorded map y = x W_s + b_s (its gradients sum_t x_t^T u_t and sum_t u_t from the
@@ -442,7 +444,8 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
             out[n] = out[n] + g
         out.update(views.grads(gs[len(ys) + len(gxs):]))
         # contiguous: the fused Adam steps a parameter with its gradient's memory order
-        return [out[n].contiguous() if n in out else torch.zeros_like(phi[n]) for n in names]
+        return [out[n].contiguous() if n in out else phi[n].new_zeros(n_rows, *phi[n].shape[1:])
+                for n in names]
 
     def jobs(self) -> np.ndarray:
         """(B,) episodes of each slot's task visit in this meta-iteration (E, or fewer
@@ -500,6 +503,7 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
         window gradients are added to ``task_grads``, the loss figures to ``sums``.
         Returns the finished episodes and the live slot-segments."""
         cfg, dev, b = self.cfg, self.device, self.batch
+        psi = self.params()
         k = self.schedule()[1]
         second_order = bool(getattr(cfg, "second_order", False)) and k > 1
         dtype = values_dtype(self)
@@ -516,13 +520,20 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
             # the window runs on the slots live at its start only (a finished episode's
             # slot waits for the others without costing a row): their phi^i rows copied
             # (a few ms, against a window's steps) and their state's rows
+            # rows; before the slots' first Adam step their weights are all psi's, shared
             rows = np.flatnonzero(alive)
-            if len(rows) == b:
-                phi_w, state_w = phi, state
+            idx = torch.from_numpy(rows).to(dev)
+            at_psi = all(float(opt.steps[s]) == 0.0 for s in rows)
+            if len(rows) == b and not at_psi:
+                phi_w = phi
+            elif at_psi:
+                phi_w = AtPsi({n: x.detach() if x.dim() == 2 else
+                               (phi[n] if len(rows) == b else
+                                phi[n].detach()[idx].requires_grad_())
+                               for n, x in psi.items()})
             else:
-                idx = torch.from_numpy(rows).to(dev)
                 phi_w = {n: x.detach()[idx].requires_grad_() for n, x in phi.items()}
-                state_w = tuple(x[idx] for x in state)  # type: ignore[assignment]
+            state_w = state if len(rows) == b else tuple(x[idx] for x in state)
             adapted: Adapted = {}
             window: list[torch.Tensor] = []
             entries: list[Any] = []
@@ -551,7 +562,8 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
                                                 create_graph=second_order, weights=live)
                     inner += alive
                     back += rec.back
-            grads = self.window_grads(torch.stack(window).sum(), phi_w, views, entries, back)
+            grads = self.window_grads(torch.stack(window).sum(), phi, len(rows), views,
+                                      entries, back)
             if len(rows) == b:                                     # g_i: unclipped
                 torch._foreach_add_(task_grads, grads)
                 state = detach_state(state_w)
@@ -591,6 +603,7 @@ class ViewBases:
         sizes = venv.nx[tasks] * venv.ny[tasks]
         self.first = torch.from_numpy(venv.offsets[tasks]).to(table.device)
         w, bias = phi["obs_embed.weight"].detach(), phi["obs_embed.bias"].detach()
+        shared = isinstance(phi, AtPsi)  # psi's (out, in) weights for every slot
         self.pre: torch.Tensor | None = None
         # one (C, F) x (F, E) product per slot and window runs at the arithmetic's speed,
         # a row per step at memory speed (it reads the slot's (F, E) weights each time):
@@ -600,12 +613,13 @@ class ViewBases:
             cells = self.first[:, None] + torch.arange(int(sizes.max()), device=table.device)
             cells = torch.minimum(cells, torch.from_numpy(venv.offsets[tasks] + sizes - 1)
                                   .to(table.device)[:, None])
-            self.pre = torch.baddbmm(bias.unsqueeze(1), table[cells], w)
+            self.pre = torch.baddbmm(bias.unsqueeze(1), table[cells], w) if not shared \
+                else torch.nn.functional.linear(table[cells], w) + bias.unsqueeze(1)
         tgt = torch.from_numpy(venv.target_view[tasks]).to(table.device)
         self.target_rows = tgt
-        self.target = torch.baddbmm(phi["target_embed.bias"].detach().unsqueeze(1),
-                                    table[tgt].unsqueeze(1),
-                                    phi["target_embed.weight"].detach()).squeeze(1)
+        wt, bt = phi["target_embed.weight"].detach(), phi["target_embed.bias"].detach()
+        self.target = torch.baddbmm(bt.unsqueeze(1), table[tgt].unsqueeze(1), wt).squeeze(1) \
+            if not shared else torch.nn.functional.linear(table[tgt], wt) + bt
         self.target.requires_grad_()
         self.obs_leaves: list[torch.Tensor] = []
         self.obs_rows: list[torch.Tensor] = []
@@ -616,9 +630,10 @@ class ViewBases:
         if self.pre is not None:
             y = self.pre[self.slots, vi - self.first]
         else:
-            w, bias = self.phi["obs_embed.weight"], self.phi["obs_embed.bias"]
-            y = torch.baddbmm(bias.detach().unsqueeze(1), self.table[vi].unsqueeze(1),
-                              w.detach()).squeeze(1)
+            w, bias = self.phi["obs_embed.weight"].detach(), self.phi["obs_embed.bias"].detach()
+            y = torch.nn.functional.linear(self.table[vi], w) + bias \
+                if isinstance(self.phi, AtPsi) else \
+                torch.baddbmm(bias.unsqueeze(1), self.table[vi].unsqueeze(1), w).squeeze(1)
         if not leaf:
             return y
         y = y.detach().requires_grad_()
