@@ -364,7 +364,7 @@ def back_grads(back: list[tuple[str, torch.Tensor, torch.Tensor]],
     (:attr:`Recorder.back`; ``gx_grads`` dL/dg_x of each): weight name -> (B, in, out)
     sum_t (dL/dg_x,t)^T g_y,t, one batched product per layer."""
     per_key: dict[str, tuple[list[torch.Tensor], list[torch.Tensor]]] = {}
-    for (key, gx, gy), g in zip(back, gx_grads, strict=True):
+    for (key, _, gy), g in zip(back, gx_grads, strict=True):
         if g is None:
             continue
         ls, gys = per_key.setdefault(key, ([], []))

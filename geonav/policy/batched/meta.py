@@ -533,7 +533,8 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
                                for n, x in psi.items()})
             else:
                 phi_w = {n: x.detach()[idx].requires_grad_() for n, x in phi.items()}
-            state_w = state if len(rows) == b else tuple(x[idx] for x in state)
+            state_w: State = state if len(rows) == b else \
+                (state[0][idx], state[1][idx], state[2][idx])
             adapted: Adapted = {}
             window: list[torch.Tensor] = []
             entries: list[Any] = []
@@ -570,8 +571,9 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
             else:
                 for g_i, g in zip(task_grads, grads, strict=True):
                     g_i.index_add_(0, idx, g)
-                state = tuple(x.detach().index_copy(0, idx, y.detach())  # type: ignore
-                              for x, y in zip(state, state_w, strict=True))
+                h, c, p = (x.detach().index_copy(0, idx, y.detach())
+                           for x, y in zip(state, state_w, strict=True))
+                state = (h, c, p)
             clip_per_slot(grads, cfg.max_grad_norm)
             opt.step(grads, rows.tolist())
         for f in finals:
