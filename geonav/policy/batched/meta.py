@@ -35,14 +35,29 @@ so a resume starts at a batch boundary and goes on with the cyclic order.
   ``t_max`` steps and no inner step: one per-task Adam step per rollout, g_i the sum of
   the rollout gradients (ISAR with K = 1 is the A3C worker's update exactly).
 
-Cost: every slot reads its own weights each step and its own Adam moments each window,
-so the per-slot part does not amortise with B (``bench/bench_batched.py``). Per-slot
-weights are stored transposed, (B, in, out): x W_s is a row-vector batched product, 5-10x
-faster on the CPU than W_s x. The view embeddings (their inputs are constant feature rows)
-are evaluated without graph, their outputs become leaves, and their weight gradients are
-one batched product sum_t x_t^T u_t per window; so are every layer's in first order and
-those of the last segment of a window in second order (no inner step differentiates
-through it), which then runs on untracked weights; autograd does the rest.
+Cost (``bench/bench_meta_speed.py``, ``shared/notes/batched-training.md``): every slot
+reads its own weights each step and its own Adam moments each window, so the per-slot
+part does not amortise with B. What keeps it small:
+
+* no parameter has a gradient edge in the graph. A per-slot weight enters the loss only
+  through recorded products y = x W_s (:class:`~geonav.policy.batched.core.SlotProduct`)
+  and, in second order, through the backward products g_x = g_y W_s^T that an inner step
+  takes with the graph; its gradient is assembled per window from those records in one
+  batched product per layer (``layer_grads``, ``back_grads``), not as an outer product per
+  step and use accumulated by autograd (most of a second-order window before);
+* before a task's first in-task Adam step phi^i = psi in every slot, so the window runs
+  psi's shared weights (:class:`~geonav.policy.batched.core.AtPsi`): one matrix product
+  over the B rows per layer, with the same per-slot gradients from the records;
+* a window runs on the slots live at its start only (their phi^i rows copied), so slots
+  whose episodes ended do not cost rows while they wait for the others;
+* the view embeddings (their inputs are constant feature rows) are evaluated without
+  graph, as a table of every view of the slot's task per window where that is cheaper
+  than one row per step; their outputs become leaves, their weight gradients one batched
+  product sum_t x_t^T u_t per window;
+* :class:`SlotAdam` steps every live slot's rows in one call of torch's fused Adam.
+
+Per-slot weights are stored transposed, (B, in, out): x W_s is a row-vector batched
+product, 5-10x faster on the CPU than W_s x.
 
 All slots start together with h = 0, so their segments and windows fall on the same
 global clock as each reference episode's own; a slot whose episode ends waits (its later
