@@ -630,8 +630,12 @@ class ViewBases:
             cells = self.first[:, None] + torch.arange(int(sizes.max()), device=table.device)
             cells = torch.minimum(cells, torch.from_numpy(venv.offsets[tasks] + sizes - 1)
                                   .to(table.device)[:, None])
-            self.pre = torch.baddbmm(bias.unsqueeze(1), table[cells], w) if not shared \
-                else torch.nn.functional.linear(table[cells], w) + bias.unsqueeze(1)
+            if not shared:
+                self.pre = torch.baddbmm(bias.unsqueeze(1), table[cells], w)
+            elif table.shape[0] <= cells.numel():  # psi's: each view once, then gathered
+                self.pre = torch.nn.functional.linear(table, w)[cells] + bias.unsqueeze(1)
+            else:
+                self.pre = torch.nn.functional.linear(table[cells], w) + bias.unsqueeze(1)
         tgt = torch.from_numpy(venv.target_view[tasks]).to(table.device)
         self.target_rows = tgt
         wt, bt = phi["target_embed.weight"].detach(), phi["target_embed.bias"].detach()
