@@ -50,7 +50,7 @@ def test_learns_tiny_task():
     pins a seed that learns; the exactness tests above carry the correctness."""
     factory = tiny_env_factory(cells=4, max_steps=7)
     env = factory()
-    cfg = ISARConfig(episodes=5000, lr=1e-3, alpha=1e-2, adam_eps=1e-5, amsgrad=False,
+    cfg = ISARConfig(episodes=1500, lr=1e-3, alpha=1e-2, adam_eps=1e-5, amsgrad=False,
                      second_order=False, seed=3)
     t = BatchedISARTrainer(factory, tiny_net("random", 32), cfg, batch=16, tensorboard=False)
     res = t.train()
@@ -63,7 +63,7 @@ def test_learns_tiny_task_with_the_trainable_cnn():
     """The CNN trained end to end, adapted per slot in the inner steps."""
     factory = tiny_env_factory(cells=4, max_steps=7)
     env = factory()
-    cfg = ISARConfig(episodes=3000, lr=1e-3, alpha=1e-2, adam_eps=1e-5, amsgrad=False,
+    cfg = ISARConfig(episodes=1000, lr=1e-3, alpha=1e-2, adam_eps=1e-5, amsgrad=False,
                      second_order=False, seed=0, eval_every=0)
     t = BatchedISARTrainer(factory, tiny_net("cnn", 32), cfg, batch=16, tensorboard=False)
     res = t.train()

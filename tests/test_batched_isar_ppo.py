@@ -100,7 +100,7 @@ def test_learns_tiny_task():
     in test_batched_isar.py, with the PPO base and its default 4 epochs)."""
     factory = tiny_env_factory(cells=4, max_steps=7)
     env = factory()
-    cfg = ISARConfig(episodes=5000, lr=1e-3, alpha=1e-2, adam_eps=1e-5, amsgrad=False,
+    cfg = ISARConfig(episodes=1500, lr=1e-3, alpha=1e-2, adam_eps=1e-5, amsgrad=False,
                      second_order=False, seed=3, base_loss="ppo")
     t = BatchedISARTrainer(factory, tiny_net("random", 32), cfg, batch=16, tensorboard=False)
     res = t.train()

@@ -39,7 +39,7 @@ def test_b1_episode_meta_gradient_equals_reference(second_order, encoder):
 def test_learns_tiny_task():
     factory = tiny_env_factory(cells=4, max_steps=7)
     env = factory()
-    cfg = SAVNConfig(episodes=3000, lr=1e-3, adam_eps=1e-5, amsgrad=False, seed=0)
+    cfg = SAVNConfig(episodes=1500, lr=1e-3, adam_eps=1e-5, amsgrad=False, seed=0)
     t = BatchedSAVNTrainer(factory, tiny_net("random", 32), cfg, batch=16, tensorboard=False)
     res = t.train()
     sr, rnd = greedy_sr(res.model, t.frozen, env), random_sr(env)
@@ -51,7 +51,7 @@ def test_learns_tiny_task_with_the_trainable_cnn():
     """The CNN trained end to end, adapted per slot in the inner steps."""
     factory = tiny_env_factory(cells=4, max_steps=7)
     env = factory()
-    cfg = SAVNConfig(episodes=3000, lr=1e-3, adam_eps=1e-5, amsgrad=False, seed=0,
+    cfg = SAVNConfig(episodes=1000, lr=1e-3, adam_eps=1e-5, amsgrad=False, seed=0,
                      eval_every=0)
     t = BatchedSAVNTrainer(factory, tiny_net("cnn", 32), cfg, batch=16, tensorboard=False)
     res = t.train()
