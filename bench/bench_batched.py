@@ -25,6 +25,9 @@ B = 64 (``META_MAX_BATCH``). Last, the memory of the observation tables of the w
 15 m task of a 1.2 km scene (images and frozen features) with B = 256 slots, and the
 process's peak RSS.
 
+``bench_meta_speed.py`` puts the batched meta-training rows of this tree next to those of
+another revision (alternating runs), for before/after ratios of an engine change.
+
 Run: ``.venv/bin/python bench/bench_batched.py [--seconds 4] [--only a3c,isar2]``.
 Figures on a shared machine vary with its load; compare the ratios of one run.
 """

@@ -103,7 +103,7 @@ def force_actions(monkeypatch, script):
     monkeypatch.setattr(a3c_mod, "choose_action", ref_choose)
     box = {}
 
-    def bat_sample(logits, rng):
+    def bat_sample(logits, rng, live=None):
         v = box["trainer"].venv
         return torch.tensor([int(script[v.task[s]][min(v.steps[s], L - 1)])
                              for s in range(v.n_slots)])
@@ -118,15 +118,19 @@ BASES = {"isar2": ISARConfig(n_steps=2, k_segments=3, alpha=0.5, lr=0.05, max_gr
          "a3c": A3CConfig(t_max=3, lr=0.05, max_grad_norm=0.2)}
 
 
-@pytest.mark.parametrize("base", [*BASES, "isar2-prev", "isar2-E2", "a3c-E2"])
+@pytest.mark.parametrize("base", [*BASES, "isar2-prev", "isar2-E2", "a3c-E2", "isar2-steps",
+                                  "a3c-steps"])
 @pytest.mark.parametrize("b", [1, 3])
 def test_meta_update_equals_reference(float64, monkeypatch, base, b):
     """B tasks' gradients g_i and the meta update equal the async MetaTrainer's (its
     TaskRunner's, one task after another) on the same trajectories, to 1e-10 (isar2-prev:
     a network with the zero-filled previous-altitude input slot; -E2: E = 2 episodes per
-    task visit, the second going on from the first's phi^i and in-task Adam)."""
+    task visit, the second going on from the first's phi^i and in-task Adam; -steps: the
+    view embeddings evaluated per step, not as a table per window)."""
     e = 2 if base.endswith("-E2") else 1
-    base = base.removesuffix("-E2")
+    if base.endswith("-steps"):
+        monkeypatch.setattr(meta_mod, "PRE_TABLE_VIEWS_PER_STEP", 0)
+    base = base.removesuffix("-E2").removesuffix("-steps")
     base, prev = base.removesuffix("-prev"), base.endswith("-prev")
     algo = base[:4].rstrip("12")
     factory = multi_task_factory(3)

@@ -192,6 +192,10 @@ class Recorder:
     """The Gram matrix of the feature table, when inputs are recorded as row indices."""
     encoder_uses: list[Params] = field(default_factory=list)
     """The per-slot trainable-CNN weights (:func:`encoder_weights`) of every encoding."""
+    back: list[tuple[str, torch.Tensor, torch.Tensor]] = field(default_factory=list)
+    """(layer key, g_x, g_y) of every backward product g_x = g_y W_s^T of a per-slot weight
+    that an inner step with ``create_graph`` took through a recorded map
+    (:class:`SlotProduct`): the second-order path through W_s, see :func:`back_grads`."""
 
     def add(self, key: str, x: torch.Tensor, y: torch.Tensor,
             idx: torch.Tensor | None = None) -> None:
@@ -251,6 +255,49 @@ class Recorder:
         return out
 
 
+class AtPsi(dict):  # type: ignore[type-arg]
+    """Per-slot parameters phi^s of meta-training while every slot's weights still equal
+    psi (before a task's first in-task Adam step): the weights are psi's own (out, in)
+    tensors, shared, the biases the slots' (B, out) leaves. Each product is then one
+    matrix product over the B rows (:class:`SharedProduct`) instead of B products that
+    read B copies of the weights, with the same per-slot gradients from the records."""
+
+
+class SharedProduct(torch.autograd.Function):
+    """y = x W^T for a weight W (out, in) shared by the B rows of x (B, in), with no
+    gradient for W: as :class:`SlotProduct` (whose per-slot gradients it gives, from the
+    same records), for slots whose weights are all equal."""
+
+    @staticmethod
+    def forward(ctx: Any, x: torch.Tensor, w: torch.Tensor, key: str,
+                sink: Recorder | None) -> torch.Tensor:
+        ctx.save_for_backward(w)
+        ctx.key, ctx.sink = key, sink
+        return x @ w.t()
+
+    @staticmethod
+    def backward(ctx: Any, gy: torch.Tensor) -> tuple[Any, ...]:
+        (w,) = ctx.saved_tensors
+        gx = SharedProductT.apply(gy, w)
+        if torch.is_grad_enabled() and gx.requires_grad and ctx.sink is not None:
+            ctx.sink.back.append((ctx.key, gx, gy.detach()))
+        return gx, None, None, None
+
+
+class SharedProductT(torch.autograd.Function):
+    """g_x = g_y W, the backward product of :class:`SharedProduct` (no gradient for W)."""
+
+    @staticmethod
+    def forward(ctx: Any, gy: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+        ctx.save_for_backward(w)
+        return gy @ w
+
+    @staticmethod
+    def backward(ctx: Any, ggx: torch.Tensor) -> tuple[Any, ...]:
+        (w,) = ctx.saved_tensors
+        return ggx @ w.t(), None
+
+
 class RunParams(dict):  # type: ignore[type-arg]
     """Parameters of packed runs: name -> the R runs' tensors stacked, (R, ...) each
     (:mod:`geonav.policy.batched.packed`); a slot's rows are those of its run."""
@@ -266,6 +313,65 @@ def affine(x: torch.Tensor, w: torch.Tensor, b: torch.Tensor | None = None) -> t
     if b is not None:
         y = y + b.unsqueeze(1)
     return y.reshape(-1, w.shape[1])
+
+
+class SlotProduct(torch.autograd.Function):
+    """y = x W_s for per-slot weights W (B, in, out) and x (B, in), with no gradient for W.
+
+    W_s enters the loss in two places only: this product, and (an inner step taken with
+    ``create_graph``) its backward product g_x = g_y W_s^T. Autograd would give W_s's
+    gradient as an outer product per step and use, accumulated one by one (a (B, in, out)
+    tensor per step: most of a second-order window's backward). Here W_s has no gradient
+    edge at all; its gradient is assembled from the recorded maps instead, in one batched
+    product per layer: sum_t x_t^T dL/dy_t (:func:`layer_grads`) plus
+    sum_t (dL/dg_x,t)^T g_y,t (:func:`back_grads`, from the ``sink``'s records of the
+    backward products made with the graph). Exact: the same terms, summed in another order.
+    """
+
+    @staticmethod
+    def forward(ctx: Any, x: torch.Tensor, w: torch.Tensor, key: str,
+                sink: Recorder | None) -> torch.Tensor:
+        ctx.save_for_backward(w)
+        ctx.key, ctx.sink = key, sink
+        return torch.bmm(x.unsqueeze(1), w).squeeze(1)
+
+    @staticmethod
+    def backward(ctx: Any, gy: torch.Tensor) -> tuple[Any, ...]:
+        (w,) = ctx.saved_tensors
+        gx = SlotProductT.apply(gy, w)
+        if torch.is_grad_enabled() and gx.requires_grad and ctx.sink is not None:
+            ctx.sink.back.append((ctx.key, gx, gy.detach()))  # create_graph: W_s's 2nd path
+        return gx, None, None, None
+
+
+class SlotProductT(torch.autograd.Function):
+    """g_x = g_y W_s^T, the backward product of :class:`SlotProduct` (no gradient for W)."""
+
+    @staticmethod
+    def forward(ctx: Any, gy: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+        ctx.save_for_backward(w)
+        return torch.bmm(gy.unsqueeze(1), w.transpose(1, 2)).squeeze(1)
+
+    @staticmethod
+    def backward(ctx: Any, ggx: torch.Tensor) -> tuple[Any, ...]:
+        (w,) = ctx.saved_tensors
+        return torch.bmm(ggx.unsqueeze(1), w).squeeze(1), None
+
+
+def back_grads(back: list[tuple[str, torch.Tensor, torch.Tensor]],
+               gx_grads: list[torch.Tensor | None]) -> dict[str, torch.Tensor]:
+    """The weights' gradients through the recorded backward products g_x = g_y W_s^T
+    (:attr:`Recorder.back`; ``gx_grads`` dL/dg_x of each): weight name -> (B, in, out)
+    sum_t (dL/dg_x,t)^T g_y,t, one batched product per layer."""
+    per_key: dict[str, tuple[list[torch.Tensor], list[torch.Tensor]]] = {}
+    for (key, _, gy), g in zip(back, gx_grads, strict=True):
+        if g is None:
+            continue
+        ls, gys = per_key.setdefault(key, ([], []))
+        ls.append(g)
+        gys.append(gy)
+    return {LAYERS[key][0]: torch.bmm(torch.stack(ls, 2), torch.stack(gys, 1))
+            for key, (ls, gys) in per_key.items()}
 
 
 def layer_grads(entries: list[tuple[str, torch.Tensor, torch.Tensor, torch.Tensor | None]],
@@ -294,13 +400,15 @@ def layer_grads(entries: list[tuple[str, torch.Tensor, torch.Tensor, torch.Tenso
 
 def linear(params: Params, key: str, x: torch.Tensor, adapted: Adapted | None,
            rec: Recorder | None, idx: torch.Tensor | None = None,
-           base: torch.Tensor | None = None) -> torch.Tensor:
+           base: torch.Tensor | None = None, back: Recorder | None = None) -> torch.Tensor:
     """y = W_s x + b_s for a (B, in) input, recorded for inner gradients when asked
     (``idx``: x's rows of the constant feature table, for the Gram-matrix factors).
 
     W and b are shared (out, in) and (out,), or per slot (B, in, out) and (B, out):
     stacked per-task parameters, the weights stored transposed, for which the batched
-    product x W_s^T and its weight gradient are 5-10x faster on the CPU than W_s x. The
+    product x W_s^T and its weight gradient are 5-10x faster on the CPU than W_s x; their
+    gradients come from the records (:class:`SlotProduct`; ``back``: the recorder of the
+    backward products when ``rec`` is None, as for the LSTM's hidden matrix). The
     factors apply on top of either. ``base`` (B, out):
     W x + b computed elsewhere (the caller differentiates through it: meta-training
     evaluates its per-slot view embeddings once per window)."""
@@ -308,10 +416,12 @@ def linear(params: Params, key: str, x: torch.Tensor, adapted: Adapted | None,
     w, b = params[wname], params[bname]
     if base is not None:
         y = base.clone()  # a node per call: the recorder's entries must not share outputs
+    elif isinstance(params, AtPsi):  # phi^s = psi for every slot: shared (out, in) weights
+        y = SharedProduct.apply(x, w.detach(), key, rec if rec is not None else back) + b
     elif isinstance(params, RunParams):  # packed runs: (R, out, in), run r's rows
         y = affine(x, w, b)
     elif w.dim() == 3:  # per-slot (B, in, out) weights, (B, out) biases: meta-training's phi^i
-        y = torch.baddbmm(b.unsqueeze(1), x.unsqueeze(1), w).squeeze(1)
+        y = SlotProduct.apply(x, w.detach(), key, rec if rec is not None else back) + b
     else:
         y = F.linear(x, w, b)
     if adapted is not None and key in adapted:
@@ -372,7 +482,7 @@ def core_step(params: Params, embed_dim: int, state: State, *,
         parts = [obs_e, tgt_e] + ([] if prev_e is None else [prev_e]) + [act_e]
         x = F.relu(linear(params, "fc", torch.cat(parts, -1), adapted, rec))
     gates = linear(params, "lstm_ih", x, adapted, rec)
-    gates = gates + linear(params, "lstm_hh", h, adapted, None)
+    gates = gates + linear(params, "lstm_hh", h, adapted, None, back=rec)
     if rec is not None:  # the hidden matrix shares u = dL/dgates with the input matrix
         rec.add("lstm_hh", h, gates)
     h, c = lstm_cell(gates, c)

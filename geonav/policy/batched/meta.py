@@ -35,14 +35,29 @@ so a resume starts at a batch boundary and goes on with the cyclic order.
   ``t_max`` steps and no inner step: one per-task Adam step per rollout, g_i the sum of
   the rollout gradients (ISAR with K = 1 is the A3C worker's update exactly).
 
-Cost: every slot reads its own weights each step and its own Adam moments each window,
-so the per-slot part does not amortise with B (``bench/bench_batched.py``). Per-slot
-weights are stored transposed, (B, in, out): x W_s is a row-vector batched product, 5-10x
-faster on the CPU than W_s x. The view embeddings (their inputs are constant feature rows)
-are evaluated without graph, their outputs become leaves, and their weight gradients are
-one batched product sum_t x_t^T u_t per window; so are every layer's in first order and
-those of the last segment of a window in second order (no inner step differentiates
-through it), which then runs on untracked weights; autograd does the rest.
+Cost (``bench/bench_meta_speed.py``, ``shared/notes/batched-training.md``): every slot
+reads its own weights each step and its own Adam moments each window, so the per-slot
+part does not amortise with B. What keeps it small:
+
+* no parameter has a gradient edge in the graph. A per-slot weight enters the loss only
+  through recorded products y = x W_s (:class:`~geonav.policy.batched.core.SlotProduct`)
+  and, in second order, through the backward products g_x = g_y W_s^T that an inner step
+  takes with the graph; its gradient is assembled per window from those records in one
+  batched product per layer (``layer_grads``, ``back_grads``), not as an outer product per
+  step and use accumulated by autograd (most of a second-order window before);
+* before a task's first in-task Adam step phi^i = psi in every slot, so the window runs
+  psi's shared weights (:class:`~geonav.policy.batched.core.AtPsi`): one matrix product
+  over the B rows per layer, with the same per-slot gradients from the records;
+* a window runs on the slots live at its start only (their phi^i rows copied), so slots
+  whose episodes ended do not cost rows while they wait for the others;
+* the view embeddings (their inputs are constant feature rows) are evaluated without
+  graph, as a table of every view of the slot's task per window where that is cheaper
+  than one row per step; their outputs become leaves, their weight gradients one batched
+  product sum_t x_t^T u_t per window;
+* :class:`SlotAdam` steps every live slot's rows in one call of torch's fused Adam.
+
+Per-slot weights are stored transposed, (B, in, out): x W_s is a row-vector batched
+product, 5-10x faster on the CPU than W_s x.
 
 All slots start together with h = 0, so their segments and windows fall on the same
 global clock as each reference episode's own; a slot whose episode ends waits (its later
@@ -64,7 +79,9 @@ import torch
 from geonav.errors import ConfigError
 from geonav.policy.batched.core import (
     Adapted,
+    AtPsi,
     Recorder,
+    back_grads,
     factored_step,
     layer_grads,
     sample_actions,
@@ -196,50 +213,60 @@ class SlotAdam:
     A step moves only the live slots, so each slot's moments and bias corrections are
     those of its own ``torch.optim.Adam`` (the reference's fresh in-task Adam per task
     visit), also when the slots' episodes end at different windows and the next episode
-    of the visit (E > 1) goes on with them. The update is torch's Adam (L2-free):
-    m <- beta1 m + (1 - beta1) g, v <- beta2 v + (1 - beta2) g^2 (amsgrad: the running
-    max of v), p <- p - lr / (1 - beta1^t) * m / (sqrt(v) / sqrt(1 - beta2^t) + eps).
+    of the visit (E > 1) goes on with them. The update is torch's fused Adam kernel
+    (``torch._fused_adam_``, L2-free, the reference's default ``fused = True``), called
+    once per window on every live slot's views of every parameter (slot s's rows of the
+    stacked tensors, with slot s's step count): one pass over the memory, where the
+    elementwise form took about a dozen and 40 % of a meta-iteration.
     """
 
     def __init__(self, params: list[torch.Tensor], lr: float, betas: tuple[float, float],
                  eps: float, amsgrad: bool) -> None:
         self.params, self.lr, self.betas, self.eps, self.amsgrad = params, lr, betas, eps, \
             amsgrad
-        self.steps = torch.zeros(params[0].shape[0], dtype=torch.float64,
-                                 device=params[0].device)
+        b = params[0].shape[0]
+        # one 0-dim step tensor per slot, float32 as torch's fused Adam keeps its steps
+        self.steps = [torch.zeros((), dtype=torch.float32, device=params[0].device)
+                      for _ in range(b)]
         self.m = [torch.zeros_like(p) for p in params]
         self.v = [torch.zeros_like(p) for p in params]
         self.v_max = [torch.zeros_like(p) for p in params] if amsgrad else []
+        # slot s's rows of every parameter and moment (views, so the kernel writes in place)
+        self._views = [self._slot_views(s) for s in range(b)]
+
+    def _slot_views(self, s: int) -> tuple[list[torch.Tensor], ...]:
+        return ([p.detach()[s] for p in self.params], [m[s] for m in self.m],
+                [v[s] for v in self.v], [v[s] for v in self.v_max])
 
     def reset(self) -> None:
         """Step 0, zero moments (a fresh Adam for every slot)."""
-        self.steps.zero_()
-        for x in (*self.m, *self.v, *self.v_max):
-            x.zero_()
+        torch._foreach_zero_([*self.steps, *self.m, *self.v, *self.v_max])
 
     @torch.no_grad()
-    def step(self, grads: list[torch.Tensor], live: torch.Tensor) -> None:
-        """One Adam step of the slots where ``live`` (B,) bool, with ``grads`` (B, ...)."""
+    def step(self, grads: list[torch.Tensor], slots: list[int]) -> None:
+        """One Adam step of the slots ``slots`` with ``grads`` (len(slots), ...), row i
+        slot ``slots[i]``'s (contiguous, as the parameters)."""
+        params: list[torch.Tensor] = []
+        gs: list[torch.Tensor] = []
+        ms: list[torch.Tensor] = []
+        vs: list[torch.Tensor] = []
+        vm: list[torch.Tensor] = []
+        steps: list[torch.Tensor] = []
+        for i, s in enumerate(slots):
+            self.steps[s].add_(1.0)
+            p, m, v, w = self._views[s]
+            params += p
+            gs += [g[i] for g in grads]
+            ms += m
+            vs += v
+            vm += w
+            steps += [self.steps[s]] * len(p)
+        if not params:
+            return
         b1, b2 = self.betas
-        every = bool(live.all())
-        self.steps += live.to(self.steps.dtype)
-        t = self.steps.clamp(min=1.0)
-        step_size = self.lr / (1.0 - b1 ** t)                                   # (B,)
-        bc2_sqrt = (1.0 - b2 ** t).sqrt()
-        for i, (p, g) in enumerate(zip(self.params, grads, strict=True)):
-            shape = (-1,) + (1,) * (p.dim() - 1)
-            keep = live.view(shape)
-            m = self.m[i].lerp(g, 1.0 - b1)
-            v = self.v[i] * b2 + (1.0 - b2) * g * g
-            vv = v
-            if self.amsgrad:
-                vv = torch.maximum(self.v_max[i], v)
-                self.v_max[i].copy_(vv if every else torch.where(keep, vv, self.v_max[i]))
-            denom = vv.sqrt() / bc2_sqrt.to(p.dtype).view(shape) + self.eps
-            new = p - step_size.to(p.dtype).view(shape) * m / denom
-            self.m[i].copy_(m if every else torch.where(keep, m, self.m[i]))
-            self.v[i].copy_(v if every else torch.where(keep, v, self.v[i]))
-            p.copy_(new if every else torch.where(keep, new, p))
+        torch._fused_adam_(params, gs, ms, vs, vm, steps, amsgrad=self.amsgrad, lr=self.lr,
+                           beta1=b1, beta2=b2, weight_decay=0.0, eps=self.eps,
+                           maximize=False, grad_scale=None, found_inf=None)
 
 
 def psi_layout(g: torch.Tensor) -> torch.Tensor:
@@ -339,46 +366,62 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
                 g.zero_()
         return phi, opt, task_grads
 
-    def view_bases(self, phi: dict[str, torch.Tensor]) -> ViewBases:
-        """The window's view embeddings W x + b under every slot's phi^s (no graph)."""
+    def view_bases(self, phi: dict[str, torch.Tensor], rows: np.ndarray) -> ViewBases:
+        """The window's view embeddings W x + b under the ``rows`` slots' phi^s (no graph)."""
         assert self.table is not None
-        return ViewBases(phi, self.table, self.venv, self.schedule())
+        return ViewBases(phi, self.table, self.venv, self.schedule(), rows)
 
     def segment(self, phi: dict[str, torch.Tensor], adapted: Adapted, state: State,
-                alive: np.ndarray, views: ViewBases, rec: Recorder | None
-                ) -> tuple[LossTerms, State, list[dict[str, Any]]]:
+                alive: np.ndarray, views: ViewBases, rec: Recorder | None,
+                rows: np.ndarray) -> tuple[LossTerms, State, list[dict[str, Any]]]:
         """Up to N lock-step steps with the graph under theta_s = phi^s + factors, the
         linear maps recorded in ``rec``: (the live slots' summed segment loss, the state,
-        the finished episodes). ``alive`` (B,) is updated in place."""
+        the finished episodes). The network runs on the window's slots ``rows`` (the
+        slots live at its start, ascending; ``phi``, ``adapted`` and ``state`` hold their
+        rows only); ``alive`` (B,) is updated in place."""
         lc, e, dev = self.cfg.loss, self.net_cfg.embed_dim, self.device
         logits, values, actions, masks, rewards, ends, end_values = [], [], [], [], [], [], []
         finals: list[dict[str, Any]] = []
         assert self.table is not None
         table = self.table
+        every = len(rows) == self.batch
+        rows_t = None if every else torch.from_numpy(rows).to(dev)
+
+        # with the Gram matrix the view embeddings' factors look their inputs up by row
+        # index and their bases come from ViewBases: the feature rows themselves are not
+        # read, so a zero placeholder of their shape saves two gathers per step
+        blank = table.new_zeros(len(rows), table.shape[1]) if self.gram is not None else None
 
         def step(st: State, r: Recorder | None, leaf: bool) -> tuple[Any, Any, State]:
             vi, ti = self.slot_indices()
-            return factored_step(phi, e, table[vi], table[ti], st, adapted, r, None, vi, ti,
+            if rows_t is not None:
+                vi, ti = vi[rows_t], ti[rows_t]
+            obs_f, tgt_f = (blank, blank) if blank is not None else (table[vi], table[ti])
+            return factored_step(phi, e, obs_f, tgt_f, st, adapted, r, None, vi, ti,
                                  self.prev_features(vi), views.obs(vi, leaf), views.target)
 
         for _ in range(self.schedule()[0]):
             if not alive.any():
                 break
+            live = alive[rows]
             logit, value, state = step(state, rec, True)
-            a = sample_actions(logit, self.rng).to(dev)
-            res = self.venv.step(a.cpu().numpy(), autoreset=False)
+            full = logit if every else logit.new_zeros(self.batch, logit.shape[1]) \
+                .index_copy(0, rows_t, logit.detach())  # type: ignore[arg-type]
+            act = sample_actions(full, self.rng, alive)  # draws for the live slots only
+            res = self.venv.step(act.numpy(), autoreset=False)
+            a = act.to(dev) if every else act[torch.from_numpy(rows)].to(dev)
             if lc.bootstrap_on_truncation:  # V(s) at a truncation under theta_s (no reset)
-                end_values.append(np.zeros(len(alive)))
+                end_values.append(np.zeros(len(rows)))
                 if (res.truncated & alive).any():
                     with torch.no_grad():
                         v_end = step(state, None, False)[1]
-                    end_values[-1] = np.where(res.truncated, v_end.cpu().numpy(), 0.0)
+                    end_values[-1] = np.where(res.truncated[rows], v_end.cpu().numpy(), 0.0)
             logits.append(logit)
             values.append(value)
             actions.append(a)
-            masks.append(torch.from_numpy(alive.copy()))
-            rewards.append(np.where(alive, res.rewards, 0.0))
-            ends.append(res.done & alive)
+            masks.append(torch.from_numpy(live))
+            rewards.append(np.where(live, res.rewards[rows], 0.0))
+            ends.append(res.done[rows] & live)
             finals += [f for f in res.final if alive[f["slot"]]]
             alive &= ~res.done
         with torch.no_grad():  # V(s_next) under theta_s, without advancing the state
@@ -390,36 +433,34 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
                                  [torch.stack(masks).to(dev, vs.dtype)])
         return terms, state, finals
 
-    def window_grads(self, loss: torch.Tensor, phi: dict[str, torch.Tensor],
-                     views: ViewBases, entries: list[Any], second_order: bool
+    def window_grads(self, loss: torch.Tensor, phi: dict[str, torch.Tensor], n_rows: int,
+                     views: ViewBases, entries: list[Any], back: list[Any]
                      ) -> list[torch.Tensor]:
-        """grad_phi^s of the window's loss for every slot, (B, ...) per parameter.
+        """grad_phi^s of the window's loss for each of its ``n_rows`` slots, (n_rows, ...)
+        per parameter (``phi``: every slot's, for the names and shapes).
 
-        A weight that enters the loss only through recorded products x W (no inner step
-        differentiates through it) has the gradient sum_t x_t^T u_t from the output
-        gradients u (:func:`~geonav.policy.batched.core.layer_grads`), one batched
-        product per layer instead of an outer product per step: the view embeddings
-        (constant inputs, evaluated once per window), every layer in first order, and in
-        second order the last segment's uses (``entries``: those recorded maps, run with
-        the weights detached); autograd gives the rest, through the inner steps.
+        No parameter has a gradient edge in the graph: every use of a per-slot weight is a
+        recorded map y = x W_s + b_s (its gradients sum_t x_t^T u_t and sum_t u_t from the
+        output gradients u, :func:`~geonav.policy.batched.core.layer_grads`) or, in second
+        order, a recorded backward product g_x = g_y W_s^T of an inner step
+        (:func:`~geonav.policy.batched.core.back_grads`); the view embeddings' come from
+        their leaves (constant inputs, evaluated once per window). One ``autograd.grad``
+        w.r.t. those outputs, then one batched product per layer instead of an outer
+        product per step.
         """
         names = list(phi)
         entries = [en for en in entries if en[0] not in ("obs_embed", "target_embed")]
         ys = list({id(y): y for _, _, y, _ in entries}.values())
-        direct = [n for n in names if n not in VIEW_PARAMS] if second_order else []
+        gxs = [gx for _, gx, _ in back]
         leaves = views.leaves()
-        gs = torch.autograd.grad(loss, [phi[n] for n in direct] + ys + leaves,
-                                 allow_unused=True)
-        out = {n: torch.zeros_like(phi[n]) if g is None else g
-               for n, g in zip(direct, gs, strict=False)}
-        recorded = layer_grads(entries, {id(y): g for y, g in
-                                         zip(ys, gs[len(direct):], strict=False)})
-        for n, g in recorded.items():
-            if not (second_order and g.dim() == 2):  # autograd has the biases' uses
-                out[n] = out[n] + g if n in out else g
-        out.update(views.grads(gs[len(direct) + len(ys):]))
+        gs = torch.autograd.grad(loss, ys + gxs + leaves, allow_unused=True)
+        out = layer_grads(entries, {id(y): g for y, g in zip(ys, gs, strict=False)})
+        for n, g in back_grads(back, list(gs[len(ys):len(ys) + len(gxs)])).items():
+            out[n] = out[n] + g
+        out.update(views.grads(gs[len(ys) + len(gxs):]))
         # contiguous: the fused Adam steps a parameter with its gradient's memory order
-        return [out[n].contiguous() if n in out else torch.zeros_like(phi[n]) for n in names]
+        return [out[n].contiguous() if n in out else phi[n].new_zeros(n_rows, *phi[n].shape[1:])
+                for n in names]
 
     def jobs(self) -> np.ndarray:
         """(B,) episodes of each slot's task visit in this meta-iteration (E, or fewer
@@ -477,6 +518,7 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
         window gradients are added to ``task_grads``, the loss figures to ``sums``.
         Returns the finished episodes and the live slot-segments."""
         cfg, dev, b = self.cfg, self.device, self.batch
+        psi = self.params()
         k = self.schedule()[1]
         second_order = bool(getattr(cfg, "second_order", False)) and k > 1
         dtype = values_dtype(self)
@@ -489,23 +531,37 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
         finals: list[dict[str, Any]] = []
         pl = vl = ent = 0.0
         live_segments = 0
-        # where every weight gradient comes from the recorded output gradients (first
-        # order; the last segment of a window in second order), the forward need not
-        # track the weights (the biases keep every output in the graph)
-        untracked = {n: x.detach() if x.dim() == 3 else x for n, x in phi.items()}
         while alive.any():  # one window of up to K segments, then each slot's Adam step
-            live_window = torch.from_numpy(alive.copy()).to(dev)
+            # the window runs on the slots live at its start only (a finished episode's
+            # slot waits for the others without costing a row): their phi^i rows copied
+            # (a few ms, against a window's steps) and their state's rows
+            # rows; before the slots' first Adam step their weights are all psi's, shared
+            rows = np.flatnonzero(alive)
+            idx = torch.from_numpy(rows).to(dev)
+            at_psi = all(float(opt.steps[s]) == 0.0 for s in rows)
+            if len(rows) == b and not at_psi:
+                phi_w = phi
+            elif at_psi:
+                phi_w = AtPsi({n: x.detach() if x.dim() == 2 else
+                               (phi[n] if len(rows) == b else
+                                phi[n].detach()[idx].requires_grad_())
+                               for n, x in psi.items()})
+            else:
+                phi_w = {n: x.detach()[idx].requires_grad_() for n, x in phi.items()}
+            state_w: State = state if len(rows) == b else \
+                (state[0][idx], state[1][idx], state[2][idx])
             adapted: Adapted = {}
             window: list[torch.Tensor] = []
             entries: list[Any] = []
-            views = self.view_bases(phi)
+            back: list[Any] = []
+            views = self.view_bases(phi_w, rows)
             adapt += alive
             for j in range(k):
                 live_segments += int(alive.sum())
                 last = j == k - 1
                 rec = Recorder(gram=self.gram)
-                terms, state, fin = self.segment(untracked if last or not second_order
-                                                 else phi, adapted, state, alive, views, rec)
+                terms, state_w, fin = self.segment(phi_w, adapted, state_w, alive, views, rec,
+                                                   rows)
                 for f in fin:
                     f["inner_updates"] = int(inner[f["slot"]])
                     f["adaptive_updates"] = int(adapt[f["slot"]])
@@ -513,29 +569,37 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
                 window.append(terms.total)
                 pl, vl = pl + float(terms.policy.detach()), vl + float(terms.value.detach())
                 ent += float(terms.entropy.detach())
-                if last or not second_order:
-                    entries += rec.entries
+                entries += rec.entries
                 if not alive.any():
                     break
                 if not last:
-                    live = torch.from_numpy(alive).to(dev, dtype)
+                    live = torch.from_numpy(alive[rows]).to(dev, dtype)
                     adapted = rec.inner_factors(terms.total, adapted, cfg.alpha,
                                                 create_graph=second_order, weights=live)
                     inner += alive
-            grads = self.window_grads(torch.stack(window).sum(), phi, views, entries,
-                                      second_order)
-            torch._foreach_add_(task_grads, grads)                 # g_i: unclipped
+                    back += rec.back
+            grads = self.window_grads(torch.stack(window).sum(), phi, len(rows), views,
+                                      entries, back)
+            if len(rows) == b:                                     # g_i: unclipped
+                torch._foreach_add_(task_grads, grads)
+                state = detach_state(state_w)
+            else:
+                for g_i, g in zip(task_grads, grads, strict=True):
+                    g_i.index_add_(0, idx, g)
+                h, c, p = (x.detach().index_copy(0, idx, y.detach())
+                           for x, y in zip(state, state_w, strict=True))
+                state = (h, c, p)
             clip_per_slot(grads, cfg.max_grad_norm)
-            opt.step(grads, live_window)
-            state = detach_state(state)
+            opt.step(grads, rows.tolist())
         for f in finals:
             f["t0"] = float(self.t_episode[f["slot"]])
         sums += [pl, vl, ent]
         return finals, live_segments
 
 
-VIEW_PARAMS = ("obs_embed.weight", "obs_embed.bias", "target_embed.weight",
-               "target_embed.bias")
+PRE_TABLE_VIEWS_PER_STEP = 12
+"""The window's view-embedding table of every view of the slots' tasks is built when the
+largest task has at most this many views per step of the window (:class:`ViewBases`)."""
 
 
 class ViewBases:
@@ -549,25 +613,34 @@ class ViewBases:
     """
 
     def __init__(self, phi: dict[str, torch.Tensor], table: torch.Tensor,
-                 venv: LatticeVecEnv, schedule: tuple[int, int]) -> None:
+                 venv: LatticeVecEnv, schedule: tuple[int, int], rows: np.ndarray) -> None:
         self.phi, self.table = phi, table
-        b = len(venv.slot_tasks)
-        self.slots = torch.arange(b, device=table.device)
-        tasks = venv.task
+        self.slots = torch.arange(len(rows), device=table.device)
+        tasks = venv.task[rows]
         sizes = venv.nx[tasks] * venv.ny[tasks]
         self.first = torch.from_numpy(venv.offsets[tasks]).to(table.device)
         w, bias = phi["obs_embed.weight"].detach(), phi["obs_embed.bias"].detach()
+        shared = isinstance(phi, AtPsi)  # psi's (out, in) weights for every slot
         self.pre: torch.Tensor | None = None
-        if int(sizes.max()) <= 4 * schedule[0] * schedule[1]:  # cheaper than per step
-            rows = self.first[:, None] + torch.arange(int(sizes.max()), device=table.device)
-            rows = torch.minimum(rows, torch.from_numpy(venv.offsets[tasks] + sizes - 1)
-                                 .to(table.device)[:, None])
-            self.pre = torch.baddbmm(bias.unsqueeze(1), table[rows], w)
+        # one (C, F) x (F, E) product per slot and window runs at the arithmetic's speed,
+        # a row per step at memory speed (it reads the slot's (F, E) weights each time):
+        # measured here, the table of C views costs about C / 20 steps' products, and it
+        # keeps the per-step working set (the other layers' weights of every slot) in cache
+        if int(sizes.max()) <= PRE_TABLE_VIEWS_PER_STEP * schedule[0] * schedule[1]:
+            cells = self.first[:, None] + torch.arange(int(sizes.max()), device=table.device)
+            cells = torch.minimum(cells, torch.from_numpy(venv.offsets[tasks] + sizes - 1)
+                                  .to(table.device)[:, None])
+            if not shared:
+                self.pre = torch.baddbmm(bias.unsqueeze(1), table[cells], w)
+            elif table.shape[0] <= cells.numel():  # psi's: each view once, then gathered
+                self.pre = torch.nn.functional.linear(table, w)[cells] + bias.unsqueeze(1)
+            else:
+                self.pre = torch.nn.functional.linear(table[cells], w) + bias.unsqueeze(1)
         tgt = torch.from_numpy(venv.target_view[tasks]).to(table.device)
         self.target_rows = tgt
-        self.target = torch.baddbmm(phi["target_embed.bias"].detach().unsqueeze(1),
-                                    table[tgt].unsqueeze(1),
-                                    phi["target_embed.weight"].detach()).squeeze(1)
+        wt, bt = phi["target_embed.weight"].detach(), phi["target_embed.bias"].detach()
+        self.target = torch.baddbmm(bt.unsqueeze(1), table[tgt].unsqueeze(1), wt).squeeze(1) \
+            if not shared else torch.nn.functional.linear(table[tgt], wt) + bt
         self.target.requires_grad_()
         self.obs_leaves: list[torch.Tensor] = []
         self.obs_rows: list[torch.Tensor] = []
@@ -578,9 +651,10 @@ class ViewBases:
         if self.pre is not None:
             y = self.pre[self.slots, vi - self.first]
         else:
-            w, bias = self.phi["obs_embed.weight"], self.phi["obs_embed.bias"]
-            y = torch.baddbmm(bias.detach().unsqueeze(1), self.table[vi].unsqueeze(1),
-                              w.detach()).squeeze(1)
+            w, bias = self.phi["obs_embed.weight"].detach(), self.phi["obs_embed.bias"].detach()
+            y = torch.nn.functional.linear(self.table[vi], w) + bias \
+                if isinstance(self.phi, AtPsi) else \
+                torch.baddbmm(bias.unsqueeze(1), self.table[vi].unsqueeze(1), w).squeeze(1)
         if not leaf:
             return y
         y = y.detach().requires_grad_()
@@ -599,8 +673,8 @@ class ViewBases:
         ut = z if gs[-1] is None else gs[-1]
         return {"obs_embed.weight": torch.bmm(x.transpose(1, 2), u),          # (B, F, E)
                 "obs_embed.bias": u.sum(1),
-                "target_embed.weight": self.table[self.target_rows].unsqueeze(-1)
-                * ut.unsqueeze(1), "target_embed.bias": ut}
+                "target_embed.weight": torch.bmm(self.table[self.target_rows].unsqueeze(-1),
+                                                 ut.unsqueeze(1)), "target_embed.bias": ut}
 
 
 class BatchedMetaA3C(BatchedMetaISAR):
