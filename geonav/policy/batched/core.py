@@ -35,6 +35,7 @@ Layer order and maths as ActorCritic.forward: embeddings with ReLU, the FC layer
 from __future__ import annotations
 
 from collections.abc import Callable
+import weakref
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -272,15 +273,21 @@ class SharedProduct(torch.autograd.Function):
     def forward(ctx: Any, x: torch.Tensor, w: torch.Tensor, key: str,
                 sink: Recorder | None) -> torch.Tensor:
         ctx.save_for_backward(w)
-        ctx.key, ctx.sink = key, sink
+        ctx.key = key
+        # a weak reference: the recorder keeps the backward products made with the graph,
+        # whose graph holds this node; a strong one would close a cycle through autograd's
+        # C++ nodes that Python's collector cannot see, and every window's graph would
+        # stay alive (bench/bench_meta_memory.py: about 290 MiB per 1,000 episodes)
+        ctx.sink = None if sink is None else weakref.ref(sink)
         return x @ w.t()
 
     @staticmethod
     def backward(ctx: Any, gy: torch.Tensor) -> tuple[Any, ...]:
         (w,) = ctx.saved_tensors
         gx = SharedProductT.apply(gy, w)
-        if torch.is_grad_enabled() and gx.requires_grad and ctx.sink is not None:
-            ctx.sink.back.append((ctx.key, gx, gy.detach()))
+        sink = None if ctx.sink is None else ctx.sink()
+        if torch.is_grad_enabled() and gx.requires_grad and sink is not None:
+            sink.back.append((ctx.key, gx, gy.detach()))
         return gx, None, None, None
 
 
@@ -332,15 +339,21 @@ class SlotProduct(torch.autograd.Function):
     def forward(ctx: Any, x: torch.Tensor, w: torch.Tensor, key: str,
                 sink: Recorder | None) -> torch.Tensor:
         ctx.save_for_backward(w)
-        ctx.key, ctx.sink = key, sink
+        ctx.key = key
+        # a weak reference: the recorder keeps the backward products made with the graph,
+        # whose graph holds this node; a strong one would close a cycle through autograd's
+        # C++ nodes that Python's collector cannot see, and every window's graph would
+        # stay alive (bench/bench_meta_memory.py: about 290 MiB per 1,000 episodes)
+        ctx.sink = None if sink is None else weakref.ref(sink)
         return torch.bmm(x.unsqueeze(1), w).squeeze(1)
 
     @staticmethod
     def backward(ctx: Any, gy: torch.Tensor) -> tuple[Any, ...]:
         (w,) = ctx.saved_tensors
         gx = SlotProductT.apply(gy, w)
-        if torch.is_grad_enabled() and gx.requires_grad and ctx.sink is not None:
-            ctx.sink.back.append((ctx.key, gx, gy.detach()))  # create_graph: W_s's 2nd path
+        sink = None if ctx.sink is None else ctx.sink()
+        if torch.is_grad_enabled() and gx.requires_grad and sink is not None:
+            sink.back.append((ctx.key, gx, gy.detach()))  # create_graph: W_s's 2nd path
         return gx, None, None, None
 
 
