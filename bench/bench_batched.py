@@ -13,7 +13,7 @@ warm-up:
 
 The ``isar2-cnn`` and ``savn-cnn`` rows train the CNN, adapted per slot in the inner
 steps (:class:`~geonav.policy.batched.core.SlotDeltas`). Rows the batched engine does not
-implement yet (packed meta-training and curriculum rows, packed runs of the trainable CNN)
+implement yet (packed meta-training and curriculum rows)
 print ``n/a``; ``packed 4x16`` is 4 independent runs of 16 slots each in one
 process batch (:mod:`geonav.policy.batched.packed`, each run its own parameters, Adam and
 per-run batch of 16), to read beside ``B=16`` (one such run) and ``B=64`` (one run of

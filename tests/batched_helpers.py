@@ -65,3 +65,4 @@ def kl_teacher_spec(net, out_dir, budget=40):
     run = A3CTrainer(at_90, net, A3CConfig(episodes=3, workers=0, seed=1), out_dir=out_dir,
                      tensorboard=False).train()
     return TeacherSpec(str(run.checkpoint), at_90, budget=budget)
+

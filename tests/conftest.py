@@ -24,3 +24,20 @@ def flat_scene():
 @pytest.fixture()
 def tiny_tasks(scene):
     return tiny_taskset(scene)
+
+
+@pytest.fixture
+def float64_default(monkeypatch):
+    """Every trainer built in the test in float64 (the default dtype), the frozen
+    encoder's input included: the async reference and the batched engine compare to 1e-10."""
+    import torch
+
+    from geonav.policy import encoders
+
+    old = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float64)
+    to_float = encoders.images_to_float
+    monkeypatch.setattr(encoders, "images_to_float",
+                        lambda *a, **k: to_float(*a, **k).to(torch.float64))
+    yield
+    torch.set_default_dtype(old)

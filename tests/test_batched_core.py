@@ -360,17 +360,22 @@ def test_masked_gae_equals_per_episode_segments():
             np.testing.assert_allclose(adv[t0:t1, s], a1[:, 0], atol=1e-12)
 
 
-@pytest.mark.parametrize("b,kind", [(1, "random"), (5, "random"), (1, "cnn"), (5, "cnn")])
+@pytest.mark.parametrize("b,kind", [(1, "random"), (5, "random"), (1, "cnn"), (5, "cnn"),
+                                    (1, "cnn-prev"), (3, "cnn-prev")])
 def test_savn_episode_meta_gradient_equals_functional_call(request, b, kind):
     """SAVN: inner steps on the learned loss (TCN over [h, pi]), meta-loss L_AC over the
     episode; gradient w.r.t. phi and Lambda, slots on different targets and states; the
-    trainable CNN adapted per slot."""
+    trainable CNN adapted per slot (cnn-prev: its previous-altitude views in the extra
+    slot, encoded under theta_s too)."""
     from torch.nn import functional as F
 
     from geonav.policy.functional import segment_forward
     from geonav.policy.savn import InteractionLoss
 
-    model, table = _nets(request, kind)
+    if kind == "cnn-prev":
+        model, table, prev = request.getfixturevalue("cnn_prev_setup")
+    else:
+        (model, table), prev = _nets(request, kind), None
     torch.manual_seed(7)
     tcn = InteractionLoss(3, 4).double()
     k, segs, alpha = 3, 3, 0.3
@@ -385,14 +390,14 @@ def test_savn_episode_meta_gradient_equals_functional_call(request, b, kind):
         rec, hs, lgs = Recorder(), [], []
         tgt_f = _feats(model, params, adapted, table, targets, rec)
         for t in range(sl.start, sl.stop):
-            lg, v, st = factored_forward(
-                params, model.cfg.embed_dim,
-                _feats(model, params, adapted, table, views[t], rec)[None], tgt_f[None], st,
-                adapted, rec)
+            pf = None if prev is None else _feats(model, params, adapted, prev, views[t], rec)
+            lg, v, st = factored_step(params, model.cfg.embed_dim,
+                                      _feats(model, params, adapted, table, views[t], rec),
+                                      tgt_f, st, adapted, rec, prev_f=pf)
             hs.append(st[0])
-            lgs.append(lg[0])
-            logits.append(lg[0])
-            values.append(v[0])
+            lgs.append(lg)
+            logits.append(lg)
+            values.append(v)
         if s_ < segs - 1:
             rows = torch.cat([torch.stack(hs, 1), F.softmax(torch.stack(lgs, 1), -1)], -1)
             l_int = torch.func.vmap(
@@ -410,7 +415,8 @@ def test_savn_episode_meta_gradient_equals_functional_call(request, b, kind):
         for s_ in range(segs):
             sl = slice(s_ * k, (s_ + 1) * k)
             lg, v, hs, st = segment_forward(model, theta, table[views[sl, s]],
-                                            table[targets[s]], st, hidden=True)
+                                            table[targets[s]], st, hidden=True,
+                                            prev=None if prev is None else prev[views[sl, s]])
             lgs.append(lg)
             vs.append(v)
             if s_ < segs - 1:
@@ -467,25 +473,52 @@ def test_prev_slot_forward_equals_module(prev_setup, with_views):
             torch.testing.assert_close(lf[:, s], lg[:, 0], atol=TOL, rtol=TOL)
 
 
-def test_prev_slot_window_gradient_equals_functional_call(prev_setup):
-    """Second-order ISAR window with the previous-altitude views in the extra slot."""
-    model, table, prev = prev_setup
-    b, n, k, alpha = 4, 2, 3, 0.3
+@pytest.fixture(scope="module")
+def cnn_prev_setup():
+    """The trainable CNN with the extra previous-altitude slot, and uint8 views of the
+    cells at both altitudes (the CNN encodes both under the slots' adapted weights)."""
+    from dataclasses import replace
+
+    torch.manual_seed(4)
+    model = ActorCritic(replace(tiny_net("cnn", 20, size=16), prev_view_input=True)).double()
+    with torch.no_grad():
+        for p in model.encoder.parameters():
+            p.mul_(0.3)
+        model.actor.weight.mul_(50.0)
+        model.actor.bias.normal_()
+        model.critic.bias.normal_()
+    g = torch.Generator().manual_seed(6)
+    images = torch.randint(0, 256, (12, 20, 20, 3), generator=g, dtype=torch.uint8)  # fast
+    prev = torch.randint(0, 256, (12, 20, 20, 3), generator=g, dtype=torch.uint8)
+    return model, images, prev
+
+
+@pytest.mark.parametrize("b,kind", [(4, "random"), (1, "cnn"), (3, "cnn")])
+def test_prev_slot_window_gradient_equals_functional_call(request, b, kind):
+    """Second-order ISAR window with the previous-altitude views in the extra slot (the
+    trainable CNN: encoded under each slot's adapted weights, as its current views)."""
+    model, table, prev = request.getfixturevalue("cnn_prev_setup" if kind == "cnn" else
+                                                 "prev_setup")
+    n, k, alpha = 2, 2 if kind == "cnn" else 3, 0.3  # the CNN's: one inner step, fast
     views, targets, actions, rewards, state = _window_data(model, table, b, n, k, seed=41)
     params = dict(model.named_parameters())
     adapted, st, total = {}, state, 0.0
     for j in range(k):
         rec, lgs, vs = Recorder(), [], []
+        tgt_f = _feats(model, params, adapted, table, targets, rec)
         for t in range(j * n, (j + 1) * n):
-            lg, v, st = factored_step(params, model.cfg.embed_dim, table[views[t]],
-                                      table[targets], st, adapted, rec,
-                                      prev_f=prev[views[t]])
+            lg, v, st = factored_step(params, model.cfg.embed_dim,
+                                      _feats(model, params, adapted, table, views[t], rec),
+                                      tgt_f, st, adapted, rec,
+                                      prev_f=_feats(model, params, adapted, prev, views[t], rec))
             lgs.append(lg)
             vs.append(v)
         nxt = views[((j + 1) * n) % views.shape[0]]
         with torch.no_grad():
-            _, v_next, _ = factored_step(params, model.cfg.embed_dim, table[nxt],
-                                         table[targets], st, adapted, prev_f=prev[nxt])
+            _, v_next, _ = factored_step(params, model.cfg.embed_dim,
+                                         _feats(model, params, adapted, table, nxt), tgt_f, st,
+                                         adapted, prev_f=_feats(model, params, adapted, prev,
+                                                                nxt))
         loss = _batched_segment_loss(torch.stack(lgs), torch.stack(vs),
                                      actions[j * n:(j + 1) * n], rewards[j * n:(j + 1) * n],
                                      v_next)
@@ -515,3 +548,6 @@ def test_prev_slot_window_gradient_equals_functional_call(prev_setup):
     ref = torch.autograd.grad(ref_total, list(model.parameters()))
     for a, r in zip(got, ref, strict=True):
         torch.testing.assert_close(a, r, atol=TOL, rtol=TOL)
+    if kind == "cnn":  # the previous views reach the CNN's gradient: zero-filled differs
+        names = [nm for nm, _ in model.named_parameters()]
+        assert float(got[names.index("prev_embed.weight")].abs().max()) > 0

@@ -3,6 +3,7 @@
 from dataclasses import replace
 
 import pytest
+import torch
 from batched_helpers import (
     assert_grads_close,
     first_update_grads,
@@ -111,3 +112,25 @@ def test_b1_first_window_with_previous_view_input_equals_reference():
     zero = BatchedISARTrainer(factory, net, cfg, batch=1, tensorboard=False)  # zero-filled
     _, z, _, _, _ = first_update_grads(ISARTrainer(factory, net, cfg, tensorboard=False), zero)
     assert max(float((a - b).abs().max()) for a, b in zip(got, z, strict=True)) > 1e-5
+
+
+@pytest.mark.parametrize("second_order", [True, False])
+def test_b1_first_window_with_previous_view_input_and_cnn_equals_reference(float64_default,
+                                                                           second_order):
+    """Option B with the trainable CNN: the previous-altitude views encoded under each
+    slot's adapted weights, as the async worker's functional_call does (float64, 1e-10)."""
+    from geonav.policy.teacher import PrevViewSpec
+
+    net = replace(tiny_net("cnn", 20, size=16), prev_view_input=True)
+    factory = tiny_env_factory(cells=5, max_steps=12, obs_size_px=20)
+    spec = PrevViewSpec(tiny_env_factory(cells=5, max_steps=12, alt_m=90.0, obs_size_px=20),
+                        90.0)
+    cfg = ISARConfig(episodes=1, workers=0, n_steps=2, k_segments=3, alpha=0.5, seed=4,
+                     second_order=second_order)
+    ref = ISARTrainer(factory, net, cfg, prev_view=spec, tensorboard=False)
+    bat = BatchedISARTrainer(factory, net, cfg, prev_view=spec, batch=1, tensorboard=False)
+    ref_grads, got, rec, _, _ = first_update_grads(ref, bat)
+    assert rec["length"] > 6 and got[0].dtype == torch.float64
+    names = [n for n, _ in ref.model.named_parameters()]
+    assert_grads_close(names, ref_grads, got, 1e-10, 1e-10)
+    assert float(got[names.index("prev_embed.weight")].abs().max()) > 0  # the views reach it

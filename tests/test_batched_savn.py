@@ -1,6 +1,7 @@
 """Batched SAVN: B = 1 equals the reference worker's episode meta-gradient; it learns."""
 
 import pytest
+import torch
 from batched_helpers import (
     assert_grads_close,
     first_update_grads,
@@ -98,3 +99,28 @@ def test_b1_truncation_bootstrap_equals_reference(encoder):
                                              BatchedSAVNTrainer(factory, net, off, batch=1,
                                                                 tensorboard=False))
     assert max(float((a - b).abs().max()) for a, b in zip(got, no_boot, strict=True)) > 1e-5
+
+
+@pytest.mark.parametrize("second_order", [True, False])
+def test_b1_episode_with_previous_view_input_and_cnn_equals_reference(float64_default,
+                                                                      second_order):
+    """Option B with the trainable CNN: the previous-altitude views encoded under each
+    slot's adapted weights, as the async worker does (float64, 1e-10)."""
+    from dataclasses import replace
+
+    from geonav.policy.teacher import PrevViewSpec
+
+    net = replace(tiny_net("cnn", 20, size=16), prev_view_input=True)
+    factory = tiny_env_factory(cells=5, max_steps=12, obs_size_px=20)
+    spec = PrevViewSpec(tiny_env_factory(cells=5, max_steps=12, alt_m=90.0, obs_size_px=20),
+                        90.0)
+    cfg = SAVNConfig(episodes=1, workers=0, k_steps=3, inner_steps=2, inner_lr=0.5, seed=4,
+                     second_order=second_order)
+    ref = SAVNTrainer(factory, net, cfg, prev_view=spec, tensorboard=False)
+    bat = BatchedSAVNTrainer(factory, net, cfg, prev_view=spec, batch=1, tensorboard=False)
+    ref_grads, got, rec, _, _ = first_update_grads(ref, bat)
+    assert rec["inner_updates"] == 2 and got[0].dtype == torch.float64
+    names = [n for n, _ in ref.model.named_parameters()] + \
+        [f"ll.{n}" for n, _ in ref.aux["interaction_loss"].named_parameters()]
+    assert_grads_close(names, ref_grads, got, 1e-10, 1e-10)
+    assert float(got[names.index("prev_embed.weight")].abs().max()) > 0

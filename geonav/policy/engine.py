@@ -8,7 +8,8 @@ against. Both write the same run folders, checkpoints and metrics.
 
 Where the batched engine does not implement a combination (ISAR without the
 partial-window flush; the previous-altitude view input outside ISAR and SAVN;
-meta-training with the ISAR or A3C base and the trainable CNN), :func:`resolve` falls
+meta-training with the ISAR or A3C base and the trainable CNN, or the SAVN base with
+E > 1), :func:`resolve` (or :func:`build_meta_trainer`) falls
 back to the async trainer, logs a warning and says so in the returned reason, which
 the trainers record in config.json.
 PPO, and ISAR with ``base_loss = "ppo"``, exist on the batched engine only.
@@ -43,8 +44,6 @@ def _fallback_reason(algo: str, net_cfg: Any, cfg: Any, teacher: bool, prev_view
                      ) -> str | None:
     if prev_view and algo not in ("isar", "savn"):
         return f"the previous-altitude view input is implemented for isar and savn, not {algo}"
-    if prev_view and (net_cfg is None or net_cfg.encoder == "cnn"):
-        return "the previous-altitude view input on the batched engine needs a frozen encoder"
     if algo in ("isar", "savn"):
         if cfg is not None and not getattr(cfg, "flush_partial_window", True):
             return "flush_partial_window = false is implemented on the async engine only"

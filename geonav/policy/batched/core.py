@@ -164,13 +164,15 @@ Adapted = dict[str, Any]
 
 def encoder_weights(params: Params, adapted: Adapted | None, b: int) -> Params:
     """The trainable CNN's weights of every slot, name (without ``encoder.``) -> (B, ...):
-    phi expanded, plus the slots' :class:`SlotDeltas` when adapted."""
+    phi expanded, plus the slots' :class:`SlotDeltas` when adapted. Packed runs'
+    (:class:`RunParams`, (R, ...) each): run r's weights for its B / R slots."""
     d = (adapted or {}).get(ENCODER)
     out: Params = {}
     for name, p in params.items():
         if name.startswith("encoder."):
             key = name[len("encoder."):]
-            w = p.expand(b, *p.shape)
+            w = p.repeat_interleave(b // p.shape[0], 0) if isinstance(params, RunParams) \
+                else p.expand(b, *p.shape)
             out[key] = w if d is None or key not in d.delta else w + d.delta[key]
     return out
 
@@ -610,7 +612,8 @@ class ActingTables:
 
     def __init__(self, params: Params, embed_dim: int, n_views: int,
                  features: Callable[[torch.Tensor], torch.Tensor],
-                 prev_features: Callable[[torch.Tensor], torch.Tensor] | None = None) -> None:
+                 prev_features: Callable[[torch.Tensor], torch.Tensor | None] | None = None
+                 ) -> None:
         self.params = params
         self.embed_dim = embed_dim
         self.features = features

@@ -132,7 +132,7 @@ class BatchedISARTrainer(BatchedTrainer):
             logit, value, state = factored_step(params, e, self.slot_views(params, adapted, vi,
                                                                            rec),
                                                 tgt_f, state, adapted, rec, self.fresh, vi, ti,
-                                                self.prev_features(vi))
+                                                self.slot_prev(params, adapted, vi, rec))
             a = sample_actions(logit, self.rng).to(dev)
             res = self.env_step(a)
             done_at.append(None)
@@ -141,7 +141,7 @@ class BatchedISARTrainer(BatchedTrainer):
                     fv = torch.from_numpy(res.final_view).to(dev)
                     _, v_end, _ = factored_step(params, e, self.slot_views(params, adapted, fv),
                                                 tgt_f, state, adapted, None, None, fv, ti,
-                                                self.prev_features(fv))
+                                                self.slot_prev(params, adapted, fv))
                 end_values[t] = np.where(res.truncated, v_end.cpu().numpy(), 0.0)
             logits.append(logit)
             values.append(value)
@@ -164,7 +164,7 @@ class BatchedISARTrainer(BatchedTrainer):
             _, v_next, _ = factored_step(params, e, self.slot_views(params, adapted, vi),
                                          self.slot_targets(params, adapted, ti, None, tgt_f),
                                          state, adapted, None, self.fresh, vi, ti,
-                                         self.prev_features(vi))
+                                         self.slot_prev(params, adapted, vi))
         lg = torch.stack(logits)
         masks = self.run_masks(current)  # one run; one per run when packed
         vs, acts = torch.stack(values), torch.stack(actions)

@@ -21,6 +21,10 @@ hooks only:
   generator, the environment slots are the members' own vector envs;
   SAVN's learned loss is each member's own (its parameters gathered per slot);
 * the view tables: each run's image part of every view (``view_rows``, ``acting_tables``).
+  With the trainable CNN, each run encodes the update's distinct views (the union over
+  the runs' slots) with its own weights, in one grouped call (``features``); acting uses
+  each member's own tables; ISAR's and SAVN's per-slot adapted CNN starts from its run's
+  weights (:func:`~geonav.policy.batched.core.encoder_weights`).
 
 Losses are sums of per-slot terms divided by the per-run batch (PPO: per-run means), so
 each run's gradient is the one it would have alone: two runs packed give the same
@@ -36,8 +40,7 @@ batch, longer than a run's own round would; its slots draw actions only while in
 episode (``sample_actions(live=...)``), so a member waiting for the others draws nothing
 and its streams stay those of the run alone.
 
-Not packed: meta-training, the curriculum teacher and the previous-altitude view input,
-and the trainable CNN.
+Not packed: meta-training, the curriculum teacher and the previous-altitude view input.
 """
 
 from __future__ import annotations
@@ -52,7 +55,7 @@ import torch
 
 from geonav.errors import ConfigError
 from geonav.policy.a3c import TrainResult
-from geonav.policy.batched.core import ActingTables, Params, RunParams
+from geonav.policy.batched.core import ActingTables, Params, RunParams, encode_slots
 from geonav.policy.batched.isar import BatchedISARTrainer
 from geonav.policy.batched.ppo import BatchedPPOTrainer
 from geonav.policy.batched.savn import BatchedSAVNTrainer
@@ -132,6 +135,20 @@ class _AllViewTables(ActingTables):
         return self._obs[view_idx + self.offset] + self._tgt[target_idx + self.offset]
 
 
+class _RunTables(ActingTables):
+    """Acting tables of packed runs with the trainable CNN: each member's own lazily
+    filled tables (its weights, its met views), its slots' rows looked up there."""
+
+    def __init__(self, members: Sequence[BatchedTrainer], per_run: int) -> None:
+        self.tables = [m.acting_tables() for m in members]
+        self.per_run = per_run
+
+    def pre(self, view_idx: torch.Tensor, target_idx: torch.Tensor) -> torch.Tensor:
+        b = self.per_run
+        return torch.cat([t.pre(view_idx[i * b:(i + 1) * b], target_idx[i * b:(i + 1) * b])
+                          for i, t in enumerate(self.tables)])
+
+
 class PackedTrainer(BatchedTrainer):
     """The driver of a packed group (see the module docstring); build it with
     :meth:`from_members`, never with the trainer constructor."""
@@ -186,10 +203,30 @@ class PackedTrainer(BatchedTrainer):
         if slots is None:
             slots = torch.arange(view_idx.shape[1], device=view_idx.device)
         off = (slots // self.run_batch) * c
+        if self.images is not None:  # trainable CNN: the distinct views, once per run
+            uniq, inv = torch.unique(torch.cat([view_idx.flatten(), target_idx.flatten()]),
+                                     return_inverse=True)
+            n, off = view_idx.numel(), (slots // self.run_batch) * uniq.numel()
+            return (uniq.repeat(r), inv[:n].view_as(view_idx) + off,
+                    inv[n:].view_as(target_idx) + off)
         rows = torch.arange(c, device=view_idx.device).repeat(r)
         return rows, view_idx + off, target_idx + off
 
+    def features(self, rows: torch.Tensor) -> torch.Tensor:
+        """(R * n, F) features of R equal groups of view rows, run r's with its weights
+        (the trainable CNN: one grouped call; a frozen table: a lookup)."""
+        if self.table is not None:
+            return self.table[rows]
+        assert self.images is not None and self.model.encoder is not None
+        r = len(self.members)
+        w = {n[len("encoder."):]: p for n, p in self.params().items()
+             if n.startswith("encoder.")}
+        imgs = self.images[rows].reshape(r, -1, *self.images.shape[1:])
+        return encode_slots(self.model.encoder, w, imgs).reshape(rows.shape[0], -1)
+
     def acting_tables(self) -> ActingTables:
+        if self.images is not None:
+            return _RunTables(self.members, self.run_batch)
         return _AllViewTables(self.params(), self.net_cfg.embed_dim, self.venv.n_views,
                               len(self.members), self.run_batch, self.features)
 
@@ -200,7 +237,8 @@ class PackedTrainer(BatchedTrainer):
         ms = self.members
         self.venv = StackedVecEnv([m.venv for m in ms])  # type: ignore[assignment]
         self.rng = StackedRng([m.rng for m in ms])  # type: ignore[assignment]
-        self.table, self.images, self.prev_table = ms[0].table, None, None
+        self.table, self.images, self.prev_table = ms[0].table, ms[0].images, None
+        self.prev_images = None
         self.state = tuple(torch.cat([m.state[k] for m in ms]) for k in range(3))  # type: ignore
         self.fresh = torch.cat([m.fresh for m in ms])
         self.t_episode = np.concatenate([m.t_episode for m in ms])
@@ -289,8 +327,6 @@ def packing_refusal(members: Sequence[Any]) -> str | None:
         return (f"packing is implemented for {sorted(c.algorithm for c in PACKED)} on the "
                 f"batched engine, all members of one algorithm; got "
                 f"{sorted({type(m).__name__ for m in members})}")
-    if m0.net_cfg.encoder == "cnn":
-        return "packed runs need a frozen encoder (the trainable CNN encodes per run)"
     if getattr(m0, "teacher_spec", None) is not None or m0.prev_view_spec is not None:
         return "packed runs do not take the curriculum teacher or the previous-view input"
     if any(getattr(m.env_factory, "augment", None) is not None for m in members):

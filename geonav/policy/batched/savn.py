@@ -133,7 +133,7 @@ class BatchedSAVNTrainer(BatchedTrainer):
             logit, value, state = factored_step(params, e, self.slot_views(params, adapted, vi,
                                                                            rec),
                                                 tgt_f, state, adapted, rec, None, vi, ti,
-                                                self.prev_features(vi))
+                                                self.slot_prev(params, adapted, vi, rec))
             hs.append(state[0])
             if tlogp is not None and lam is not None:  # lambda KL(pi_T || pi_theta), (B,)
                 kls.append(kl_terms(tlogp[None].to(dtype), logit[None])[0] * lam)
@@ -147,7 +147,7 @@ class BatchedSAVNTrainer(BatchedTrainer):
                         _, v_end, _ = factored_step(params, e, self.slot_views(params, adapted,
                                                                                fv),
                                                     tgt_f, state, adapted, None, None, fv, ti,
-                                                    self.prev_features(fv))
+                                                    self.slot_prev(params, adapted, fv))
                     end_values[-1] = np.where(res.truncated & alive, v_end.cpu().numpy(), 0.0)
             logits.append(logit)
             values.append(value)

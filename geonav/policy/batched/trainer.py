@@ -206,14 +206,17 @@ class BatchedTrainer(A3CTrainer):
             self.venv.np_random.bit_generator.state = st["env"]
         self.reset_venv()
         dtype = next(self.model.parameters()).dtype
-        self.prev_table = None
+        self.prev_table = self.prev_images = None
         if self.prev_view_spec is not None:
-            if self.frozen is None or not self.net_cfg.prev_view_input:
-                raise ConfigError("the previous-altitude view input on the batched engine "
-                                  "needs a frozen encoder and a network with the extra slot")
+            if not self.net_cfg.prev_view_input:
+                raise ConfigError("the previous-altitude view input needs a network with the "
+                                  "extra slot (NetConfig.prev_view_input = true)")
             # the same lattice at the previous altitude: the same view indices
             prev_env = LatticeVecEnv(self.prev_view_spec.env_factory(), 1)
-            self.prev_table = prev_env.feature_table(self.frozen).to(self.device, dtype)
+            if self.frozen is not None:
+                self.prev_table = prev_env.feature_table(self.frozen).to(self.device, dtype)
+            else:  # the trainable CNN encodes them as it does the current views
+                self.prev_images = torch.from_numpy(prev_env.image_table()).to(self.device)
         if self.frozen is not None:
             self.table = self.venv.feature_table(self.frozen).to(self.device, dtype)
             self.images = None
@@ -247,22 +250,33 @@ class BatchedTrainer(A3CTrainer):
         return self.model.features(self.images[rows])
 
     def slot_views(self, params: Params, adapted: Adapted | None, rows: torch.Tensor,
-                   rec: Recorder | None = None, slots: torch.Tensor | None = None
-                   ) -> torch.Tensor:
+                   rec: Recorder | None = None, slots: torch.Tensor | None = None, *,
+                   prev: bool = False) -> torch.Tensor:
         """(n, F) features of one view per slot under the slots' adapted weights (ISAR,
         SAVN): ``rows`` (n,) the views of ``slots`` (default: all B, in order). The frozen
         table's rows; or the trainable CNN, each slot's view encoded with its own weights
         (:func:`~geonav.policy.batched.core.encode_slots`, with graph), the weights
-        recorded in ``rec`` for the inner gradients."""
-        if self.table is not None:
-            return self.table[rows]
-        assert self.images is not None and self.model.encoder is not None
+        recorded in ``rec`` for the inner gradients. ``prev``: the previous-altitude views
+        at those rows instead (the extra slot's input)."""
+        table, images = (self.prev_table, self.prev_images) if prev else \
+            (self.table, self.images)
+        if table is not None:
+            return table[rows]
+        assert images is not None and self.model.encoder is not None
         w = encoder_weights(params, adapted, self.batch)
         if rec is not None:
             rec.add_encoder(w)
         if slots is not None:
             w = {k: v[slots] for k, v in w.items()}
-        return encode_slots(self.model.encoder, w, self.images[rows].unsqueeze(1))[:, 0]
+        return encode_slots(self.model.encoder, w, images[rows].unsqueeze(1))[:, 0]
+
+    def slot_prev(self, params: Params, adapted: Adapted | None, rows: torch.Tensor,
+                  rec: Recorder | None = None) -> torch.Tensor | None:
+        """(B, F) previous-altitude view features of the slots' cells ``rows`` under their
+        adapted weights (:meth:`slot_views`), or None (the extra slot zero-filled)."""
+        if self.prev_table is None and self.prev_images is None:
+            return None
+        return self.slot_views(params, adapted, rows, rec, prev=True)
 
     def slot_targets(self, params: Params, adapted: Adapted | None, target_idx: torch.Tensor,
                      rec: Recorder | None, last: torch.Tensor | None) -> torch.Tensor:
@@ -280,12 +294,15 @@ class BatchedTrainer(A3CTrainer):
     def prev_features(self, rows: torch.Tensor) -> torch.Tensor | None:
         """(n, F) features of the previous-altitude views at view indices, or None (the
         extra slot, when the network has one, is zero-filled)."""
+        if self.prev_images is not None:
+            return self.model.features(self.prev_images[rows])
         return None if self.prev_table is None else self.prev_table[rows]
 
     def acting_tables(self) -> ActingTables:
         return ActingTables(self.params(), self.net_cfg.embed_dim, self.venv.n_views,
                             self.features,
-                            None if self.prev_table is None else self.prev_table.__getitem__)
+                            None if self.prev_table is None and self.prev_images is None
+                            else self.prev_features)
 
     def run_slices(self) -> list[slice]:
         """The slot columns of each run: one run here, R in a packed driver."""
