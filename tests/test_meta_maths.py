@@ -354,3 +354,35 @@ def test_teacher_kl_is_added_with_its_weight():
     kl = teacher_kl(torch.stack(seg.teacher_logp), base.logits)
     assert float(kl) > 0
     assert float(half.loss - base.loss) == pytest.approx(0.5 * float(kl), rel=1e-12)
+
+
+def test_grads_of_gives_each_gradient_its_leafs_layout():
+    """The learned loss's first convolution gets a gradient with other strides than its
+    weight from ``autograd.grad``; torch's fused Adam steps a parameter with its gradient
+    in memory order, so the SAVN worker's step took the wrong elements until grads_of
+    returned the leaf's layout. Fused and unfused Adam now agree."""
+    from geonav.policy.functional import grads_of
+
+    def meta_loss(mod):  # Lambda's gradient through an inner step, as SAVN's
+        rows = torch.randn(3, 20, generator=torch.Generator().manual_seed(0),
+                           requires_grad=True)
+        (g,) = torch.autograd.grad(mod(rows), [rows], create_graph=True)
+        return (g * torch.arange(60.0).view(3, 20)).sum()
+
+    tcn = InteractionLoss(3, 10)
+    w = tcn.ll_conv1.weight
+    (raw,) = torch.autograd.grad(meta_loss(tcn), [w])
+    assert raw.stride() != w.stride()  # what the fix is for (torch 2.13, CPU)
+    steps = []
+    for fused in (True, False):
+        mod = InteractionLoss(3, 10)
+        mod.load_state_dict(tcn.state_dict())
+        params = list(mod.parameters())
+        opt = torch.optim.Adam(params, lr=0.05, fused=fused)
+        for p, g in zip(params, grads_of(meta_loss(mod), params), strict=True):
+            assert g.stride() == p.stride()
+            p.grad = g
+        opt.step()
+        steps.append([p.detach().clone() for p in params])
+    for a, b in zip(*steps, strict=True):
+        torch.testing.assert_close(a, b, atol=1e-12, rtol=1e-12)

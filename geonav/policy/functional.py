@@ -148,9 +148,19 @@ def sgd_step(params: Params, loss: torch.Tensor, lr: float, *, create_graph: boo
 
 
 def grads_of(loss: torch.Tensor, leaves: list[torch.Tensor]) -> list[torch.Tensor]:
-    """d loss / d leaves, zeros for unused leaves (the graph is freed)."""
+    """d loss / d leaves, zeros for unused leaves (the graph is freed), each in its leaf's
+    memory layout.
+
+    ``autograd.grad`` may return a gradient with other strides than its leaf (the learned
+    loss's first convolution: (2, 20, 1) against (6, 2, 1)); ``.backward()`` would copy it
+    into the leaf's layout, and torch's fused Adam kernel (torch 2.13, CPU) steps a
+    parameter with its gradient elementwise in memory order, so a gradient set as
+    ``.grad`` in another layout would move the wrong elements.
+    """
     gs = torch.autograd.grad(loss, leaves, allow_unused=True)
-    return [torch.zeros_like(p) if g is None else g for p, g in zip(leaves, gs, strict=True)]
+    return [torch.zeros_like(p) if g is None else
+            g if g.stride() == p.stride() else torch.empty_like(p).copy_(g)
+            for p, g in zip(leaves, gs, strict=True)]
 
 
 def load_values(module: nn.Module, params: Params) -> None:
