@@ -14,7 +14,9 @@ from geonav.env import GeoNavEnv
 from geonav.policy import a3c as a3c_mod
 from geonav.policy import encoders
 from geonav.policy import isar as isar_mod
+from geonav.policy import savn as savn_mod
 from geonav.policy.batched import meta as meta_mod
+from geonav.policy.batched import savn as batched_savn_mod
 from geonav.policy.batched.meta import BatchedMetaSAVN
 from geonav.policy.callbacks import Callback, read_metrics
 from geonav.policy.checkpoint import load_checkpoint
@@ -109,24 +111,34 @@ def force_actions(monkeypatch, script):
                              for s in range(v.n_slots)])
 
     monkeypatch.setattr(meta_mod, "sample_actions", bat_sample)
+    monkeypatch.setattr(savn_mod, "choose_action", ref_choose)
+    monkeypatch.setattr(batched_savn_mod, "sample_actions", bat_sample)
     return box
 
 
 BASES = {"isar2": ISARConfig(n_steps=2, k_segments=3, alpha=0.5, lr=0.05, max_grad_norm=0.2),
          "isar1": ISARConfig(n_steps=2, k_segments=3, alpha=0.5, lr=0.05, max_grad_norm=0.2,
                              second_order=False),
-         "a3c": A3CConfig(t_max=3, lr=0.05, max_grad_norm=0.2)}
+         "a3c": A3CConfig(t_max=3, lr=0.05, max_grad_norm=0.2),
+         "savn": SAVNConfig(k_steps=3, inner_steps=2, inner_lr=0.5, lr=0.05,
+                            max_grad_norm=0.2)}
 
 
-@pytest.mark.parametrize("base", [*BASES, "isar2-prev", "isar2-E2", "a3c-E2", "isar2-steps",
-                                  "a3c-steps"])
+@pytest.mark.parametrize("base", [*(k for k in BASES if k != "savn"), "isar2-prev", "isar2-E2",
+                                  "a3c-E2", "isar2-steps", "a3c-steps", "savn-E2",
+                                  "savn-E2-cnn"])
 @pytest.mark.parametrize("b", [1, 3])
 def test_meta_update_equals_reference(float64, monkeypatch, base, b):
     """B tasks' gradients g_i and the meta update equal the async MetaTrainer's (its
     TaskRunner's, one task after another) on the same trajectories, to 1e-10 (isar2-prev:
     a network with the zero-filled previous-altitude input slot; -E2: E = 2 episodes per
     task visit, the second going on from the first's phi^i and in-task Adam; -steps: the
-    view embeddings evaluated per step, not as a table per window)."""
+    view embeddings evaluated per step, not as a table per window; -cnn: the trainable
+    CNN, per-task copies of it; savn: the learned loss's gradients too)."""
+    if base.endswith("-cnn"):
+        base, encoder = base.removesuffix("-cnn"), "cnn"
+    else:
+        encoder = "random"
     e = 2 if base.endswith("-E2") else 1
     if base.endswith("-steps"):
         monkeypatch.setattr(meta_mod, "PRE_TABLE_VIEWS_PER_STEP", 0)
@@ -137,7 +149,7 @@ def test_meta_update_equals_reference(float64, monkeypatch, base, b):
     script = np.random.default_rng(5).integers(0, 4, (3, L))
     script[1, :6] = [3, 2, 3, 2, 3, 2]  # task 1 walks to its target (0, 0)
     box = force_actions(monkeypatch, script)
-    net = replace(tiny_net("random", 32, size=16), prev_view_input=prev)
+    net = replace(tiny_net(encoder, 32, size=16), prev_view_input=prev)
     meta = MetaConfig(episodes=2 * b * e, workers=0, batch_tasks=b, meta_lr=0.1, seed=4,
                       episodes_per_task=e)
     ref = MetaTrainer(factory, net, algo, BASES[base], meta, keep_task_grads=True,
@@ -146,7 +158,8 @@ def test_meta_update_equals_reference(float64, monkeypatch, base, b):
     bat = build_meta_trainer(algo, "batched", factory, net, BASES[base], meta,
                              keep_task_grads=True, tensorboard=False)
     box["trainer"] = bat
-    assert type(bat).__name__ == {"isar": "BatchedMetaISAR", "a3c": "BatchedMetaA3C"}[algo]
+    assert type(bat).__name__ == {"isar": "BatchedMetaISAR", "a3c": "BatchedMetaA3C",
+                                  "savn": "BatchedMetaSAVN"}[algo]
     res = bat.train()
     lengths = [r["length"] for r in res.records]
     assert lengths == [r["length"] for r in ref_res.records]
@@ -158,7 +171,8 @@ def test_meta_update_equals_reference(float64, monkeypatch, base, b):
     if e == 2:  # a visit's second episode starts where the first left phi^i and its Adam
         assert [r["task_index"] for r in res.records[:2 * b]] == \
             [j for j in range(b) for _ in range(2)]
-    names = [n for n, _ in ref.model.named_parameters()]
+    names = [n for n, _ in ref.model.named_parameters()] + \
+        [f"tcn.{n}" for m in ref.aux.values() for n, _ in m.named_parameters()]
     assert len(bat.update_log) == len(ref.update_log) == 2  # the second reuses the buffers
     for r_log, b_log in zip(ref.update_log, bat.update_log, strict=True):
         assert b_log["tasks"] == r_log["tasks"]

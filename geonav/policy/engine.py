@@ -143,9 +143,6 @@ def build_meta_trainer(algo: str, engine: str, env_factory: Any, net_cfg: Any, b
         if reason is None and algo != "savn" and (net_cfg is None or net_cfg.encoder == "cnn"):
             reason = (f"batched meta-training with the {algo.upper()} base needs a frozen "
                       "encoder (per-task copies of the trainable CNN are not implemented)")
-        if reason is None and meta_cfg.episodes_per_task != 1 and algo == "savn":
-            reason = ("batched meta-training with the SAVN base runs E = 1 episode per task "
-                      "visit (its slots share psi)")
         if reason is None:
             from geonav.policy.batched.meta import BATCHED_META
 

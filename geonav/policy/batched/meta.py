@@ -80,7 +80,9 @@ from geonav.errors import ConfigError
 from geonav.policy.batched.core import (
     Adapted,
     AtPsi,
+    Params,
     Recorder,
+    RunParams,
     back_grads,
     factored_step,
     layer_grads,
@@ -177,19 +179,169 @@ class MetaRun:
         rec["meta_update"] = f["meta_update"]
         return rec
 
+    # -- per-task parameters phi^i (the ISAR and A3C bases; the SAVN base with E > 1) ----
+    transposed_slots = True
+    """Per-slot 2-D weights stored transposed, (B, in, out), for the recorded products
+    (:class:`~geonav.policy.batched.core.SlotProduct`); False: in the model's layout,
+    (B, out, in), run-stacked (:class:`~geonav.policy.batched.core.RunParams`, one run a
+    slot), their gradients by ordinary autograd."""
+
+    def _setup(self) -> None:
+        super()._setup()  # type: ignore[misc]
+        self._slots: Any = None
+        self._ran = 0
+        """Episodes of the last round (its slots move to the next tasks at the next one)."""
+
+    def reset_venv(self) -> None:
+        """The round's first episodes. With E > 1 the starts of every episode of the
+        visits are drawn here, visit by visit (a task's E episodes in turn, the
+        reference's order of draws); a visit's later episodes reset to them."""
+        e, venv = self.meta_cfg.episodes_per_task, self.venv  # type: ignore[attr-defined]
+        if e == 1:
+            venv.reset()
+            return
+        self._starts = np.array([[venv.draw_start(int(t)) for _ in range(e)]
+                                 for t in venv.slot_tasks])                     # (B, E, 2)
+        venv.reset(starts=self._starts[:, 0])
+
+    def jobs(self) -> np.ndarray:
+        """(B,) episodes of each slot's task visit in this meta-iteration (E, or fewer
+        at the end of the budget, as the reference's batches; 0: no task)."""
+        e = self.meta_cfg.episodes_per_task
+        left = self.cfg.episodes - self.episodes_done  # type: ignore[attr-defined]
+        return np.clip(left - e * np.arange(self.batch), 0, e)  # type: ignore[attr-defined]
+
+    def slot_psi(self) -> dict[str, torch.Tensor]:
+        """psi by name in the order of ``params_list``: the policy's parameters, then the
+        aux modules' (named ``<key>.<name>``: SAVN's learned loss)."""
+        d = dict(self.model.named_parameters())  # type: ignore[attr-defined]
+        for key, mod in self.aux.items():  # type: ignore[attr-defined]
+            d.update({f"{key}.{n}": p for n, p in mod.named_parameters()})
+        return d
+
+    def task_parameters(self) -> tuple[dict[str, torch.Tensor], SlotAdam, list[torch.Tensor]]:
+        """phi^j <- psi for every slot, stacked (B, ...) leaves (2-D weights (B, in, out)
+        with :attr:`transposed_slots`, see :func:`~geonav.policy.batched.core.linear`),
+        their fresh Adam and zeroed task gradients. The buffers live across rounds
+        (re-allocating B copies of the network and its Adam moments each round costs more
+        than filling them)."""
+        cfg, b, tr = self.cfg, self.batch, self.transposed_slots  # type: ignore[attr-defined]
+        psi = self.slot_psi()
+        if self._slots is None:
+            phi = {n: torch.empty((b, *p.shape[::-1]) if tr and p.dim() == 2 else
+                                  (b, *p.shape), dtype=p.dtype,
+                                  device=p.device).requires_grad_()
+                   for n, p in psi.items()}
+            opt = SlotAdam(list(phi.values()), cfg.lr, cfg.adam_betas, cfg.adam_eps,
+                           cfg.amsgrad)
+            self._slots = (phi, opt, [torch.zeros_like(x) for x in phi.values()])
+        phi, opt, task_grads = self._slots
+        with torch.no_grad():
+            for n, p in psi.items():
+                phi[n].copy_((p.t() if tr and p.dim() == 2 else p).unsqueeze(0)
+                             .expand_as(phi[n]))
+            opt.reset()  # a fresh Adam: step 0, zero moments
+            for g in task_grads:
+                g.zero_()
+        return phi, opt, task_grads
+
+    def psi_layout(self, g: torch.Tensor) -> torch.Tensor:
+        """One slot's gradient (or a sum of them) in its parameter's layout."""
+        return psi_layout(g) if self.transposed_slots else g
+
+    def task_meta_step(self, task_grads: list[torch.Tensor], n_jobs: int,
+                       tasks: list[int]) -> None:
+        """psi <- psi - eta * sum_i g_i over the first ``n_jobs`` slots' task gradients
+        (``tasks``: their task indices, for the update log)."""
+        lay = self.psi_layout
+        if self.on_gradients is not None:  # type: ignore[attr-defined]
+            self.on_gradients([lay(g[:n_jobs].sum(0)) for g in task_grads])  # type: ignore
+        total = [lay(g[:n_jobs].sum(0)) for g in task_grads]
+        entry = meta_step(self.optimizer, self.params_list,  # type: ignore[attr-defined]
+                          [[lay(g[j]) for g in task_grads] for j in range(n_jobs)]
+                          if self.keep_task_grads else [], self.meta_cfg.meta_max_grad_norm,
+                          keep=self.keep_task_grads, total=total)
+        self.meta_updates += 1
+        self.update_log.append({"tasks": tasks, **entry})
+
+    def step_slots(self, grads: list[torch.Tensor], rows: np.ndarray) -> None:
+        """The in-task update of the slots ``rows`` with their gradients ``grads``
+        ((len(rows), ...) per parameter, unclipped): added to their task gradients g_i,
+        clipped per slot to the base's ``max_grad_norm``, one step of each slot's Adam."""
+        _, opt, task_grads = self._slots
+        if len(rows) == self.batch:  # type: ignore[attr-defined]
+            torch._foreach_add_(task_grads, grads)
+        else:
+            idx = torch.from_numpy(rows).to(grads[0].device)
+            for g_i, g in zip(task_grads, grads, strict=True):
+                g_i.index_add_(0, idx, g)
+        clip_per_slot(grads, self.cfg.max_grad_norm)  # type: ignore[attr-defined]
+        opt.step(grads, rows.tolist())
+
+
 
 class BatchedMetaSAVN(MetaRun, BatchedSAVNTrainer):
     """Meta-training with the SAVN base on the batched engine (see the module docstring).
 
-    Args as :class:`~geonav.policy.meta.MetaTrainer` with ``algo = 'savn'``.
+    With E = 1 the slots run psi's own parameters and one backward of the round gives
+    the sum of the task gradients; with E > 1 each slot runs its own phi^i (run-stacked
+    per-slot parameters of the policy and the learned loss, :class:`SlotAdam`), one SAVN
+    round per episode of the visits. Args as :class:`~geonav.policy.meta.MetaTrainer`
+    with ``algo = 'savn'``.
     """
 
     base_algo = "savn"
-    base_overrides: ClassVar[dict[str, Any]] = {"max_grad_norm": 0.0}
+    many_episodes_per_task = True
+    transposed_slots = False
+
+    def __init__(self, env_factory: Any, net_cfg: Any, base_cfg: A3CConfig,
+                 meta_cfg: MetaConfig | None = None, **kwargs: Any) -> None:
+        e = (meta_cfg if meta_cfg is not None else MetaConfig()).episodes_per_task
+        self.per_task = e > 1
+        """Per-slot phi^i and in-task Adam steps (E > 1)."""
+        if not self.per_task:  # the in-task step follows the visit's only episode: unused
+            base_cfg = replace(base_cfg, max_grad_norm=0.0)
+        self._task: tuple[dict[str, torch.Tensor], SlotAdam, list[torch.Tensor]] | None = None
+        self._live = np.ones(0, bool)
+        self._round = (0, 1)
+        super().__init__(env_factory, net_cfg, base_cfg, meta_cfg, **kwargs)
+
+    # -- the SAVN round's hooks ------------------------------------------------------------
+    def params(self) -> Params:
+        """psi (E = 1), or the slots' phi^i of the policy, run-stacked (B, ...)."""
+        if self._task is None:
+            return super().params()
+        return RunParams({n: x for n, x in self._task[0].items() if not n.startswith(AUX)})
+
+    def loss_params(self) -> tuple[dict[str, torch.Tensor], int | None]:
+        """Lambda shared (E = 1), or the slots' phi^i of the learned loss (vmap dim 0)."""
+        if self._task is None:
+            return super().loss_params()
+        return {n[len(AUX):]: x for n, x in self._task[0].items() if n.startswith(AUX)}, 0
+
+    def round_slots(self) -> np.ndarray:
+        return self._live.copy()
+
+    def next_round(self, visits: int | None = None) -> None:
+        """The visit's next episode in every slot (E > 1), else the next B tasks."""
+        e, rounds = self._round
+        if e + 1 < rounds:
+            self.venv.reset(starts=self._starts[:, e + 1])
+            return
+        super().next_round(visits)
 
     def step_optimizer(self, loss: torch.Tensor) -> None:
-        """psi <- psi - eta * sum_i g_i: the round's loss is the mean over the B slots,
-        so its gradient times B is the sum of the task gradients."""
+        """E = 1: psi <- psi - eta * sum_i g_i (the round's loss is the mean over the B
+        slots, so its gradient times B is the sum of the task gradients). E > 1: each
+        playing slot's meta-gradient w.r.t. its phi^i goes into g_i and its Adam step."""
+        if self._task is not None:
+            phi = list(self._task[0].values())
+            gs = torch.autograd.grad(loss * self.batch, phi, allow_unused=True)
+            rows = np.flatnonzero(self._live)
+            idx = torch.from_numpy(rows).to(self.device)
+            self.step_slots([(torch.zeros_like(x) if g is None else g)[idx].contiguous()
+                             for x, g in zip(phi, gs, strict=True)], rows)
+            return
         self.optimizer.zero_grad(set_to_none=True)
         (loss * self.batch).backward()
         total = [torch.zeros_like(p) if p.grad is None else p.grad for p in self.params_list]
@@ -198,13 +350,40 @@ class BatchedMetaSAVN(MetaRun, BatchedSAVNTrainer):
         entry = meta_step(self.optimizer, self.params_list, [total],
                           self.meta_cfg.meta_max_grad_norm)
         self.meta_updates += 1
-        self.update_log.append({"tasks": self.venv.slot_tasks.tolist(), **entry})
+        self.update_log.append({"tasks": self._tasks, **entry})
 
     def update(self) -> tuple[list[dict[str, Any]], dict[str, float]]:
-        finals, stats = super().update()
+        """One meta-iteration: a SAVN round (E = 1), or E rounds on per-task parameters
+        (phi^i and its Adam carried from one to the next), then the meta step."""
+        jobs = self.jobs()
+        n_jobs = int((jobs > 0).sum())
+        self._tasks = self.venv.slot_tasks[:n_jobs].tolist()
+        rounds = int(jobs.max())
+        if not self.per_task:
+            self._live, self._round = jobs > 0, (0, 1)
+            finals, stats = super().update()
+        else:
+            self._task = self.task_parameters()
+            finals = []
+            try:
+                for e in range(rounds):
+                    self._live, self._round = jobs > e, (e, rounds)
+                    fin, stats = super().update()
+                    for f in fin:
+                        f["task_episode"] = e
+                    finals += fin
+            finally:
+                self._task = None
+            self.task_meta_step(self._slots[2], n_jobs, self._tasks)
+            # records in batch order (a task's episodes in turn), as the reference's
+            finals.sort(key=lambda f: (f["slot"], f["task_episode"]))
         for f in finals:
             f["meta_update"] = self.meta_updates
         return finals, stats
+
+
+AUX = "interaction_loss."
+"""The name prefix of the learned loss's parameters among a slot's phi^i."""
 
 
 class SlotAdam:
@@ -310,18 +489,6 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
         """(steps per segment N, segments per window K)."""
         return self.cfg.n_steps, self.cfg.k_segments
 
-    def reset_venv(self) -> None:
-        """The round's first episodes. With E > 1 the starts of every episode of the
-        visits are drawn here, visit by visit (a task's E episodes in turn, the
-        reference's order of draws), and :meth:`update` resets to them."""
-        e, venv = self.meta_cfg.episodes_per_task, self.venv
-        if e == 1:
-            venv.reset()
-            return
-        self._starts = np.array([[venv.draw_start(int(t)) for _ in range(e)]
-                                 for t in venv.slot_tasks])                     # (B, E, 2)
-        venv.reset(starts=self._starts[:, 0])
-
     def resolved_config(self) -> dict[str, Any]:
         d = super().resolved_config()
         d["gradient_path"] = {**gradient_path(self.cfg), "path": "batched, per-task "
@@ -332,9 +499,6 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
     def _setup(self) -> None:
         super()._setup()
         self.gram = gram_matrix(self.table)
-        self._ran = 0
-        """Episodes of the last round (its slots move to the next tasks at the next one)."""
-        self._slots: Any = None
 
     def record(self, f: dict[str, Any], stats: dict[str, float]) -> dict[str, Any]:
         rec = super().record(f, stats)
@@ -342,29 +506,6 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
             rec.update({"inner_updates": f["inner_updates"],
                         "adaptive_updates": f["adaptive_updates"], "kl_weight": 0.0})
         return rec
-
-    def task_parameters(self) -> tuple[dict[str, torch.Tensor], SlotAdam, list[torch.Tensor]]:
-        """phi^j <- psi for every slot, stacked (B, ...) leaves (weights (B, in, out), see
-        :func:`~geonav.policy.batched.core.linear`), their fresh Adam and zeroed task
-        gradients. The buffers live across rounds (re-allocating B copies of the network
-        and its Adam moments each round costs more than filling them)."""
-        cfg, b = self.cfg, self.batch
-        psi = self.params()
-        if self._slots is None:
-            phi = {n: torch.empty((b, *p.shape[::-1]) if p.dim() == 2 else (b, *p.shape),
-                                  dtype=p.dtype, device=p.device).requires_grad_()
-                   for n, p in psi.items()}
-            opt = SlotAdam(list(phi.values()), cfg.lr, cfg.adam_betas, cfg.adam_eps,
-                           cfg.amsgrad)
-            self._slots = (phi, opt, [torch.zeros_like(x) for x in phi.values()])
-        phi, opt, task_grads = self._slots
-        with torch.no_grad():
-            for n, p in psi.items():
-                phi[n].copy_((p.t() if p.dim() == 2 else p).unsqueeze(0).expand_as(phi[n]))
-            opt.reset()  # a fresh Adam: step 0, zero moments
-            for g in task_grads:
-                g.zero_()
-        return phi, opt, task_grads
 
     def view_bases(self, phi: dict[str, torch.Tensor], rows: np.ndarray) -> ViewBases:
         """The window's view embeddings W x + b under the ``rows`` slots' phi^s (no graph)."""
@@ -462,13 +603,6 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
         return [out[n].contiguous() if n in out else phi[n].new_zeros(n_rows, *phi[n].shape[1:])
                 for n in names]
 
-    def jobs(self) -> np.ndarray:
-        """(B,) episodes of each slot's task visit in this meta-iteration (E, or fewer
-        at the end of the budget, as the reference's batches; 0: no task)."""
-        e = self.meta_cfg.episodes_per_task
-        left = self.cfg.episodes - self.episodes_done
-        return np.clip(left - e * np.arange(self.batch), 0, e)
-
     def update(self) -> tuple[list[dict[str, Any]], dict[str, float]]:
         """One meta-iteration: E episodes per slot on per-task parameters (one after
         another, phi^i and its Adam carried on), then the meta step."""
@@ -490,15 +624,7 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
                 f["task_episode"] = e
             finals += fin
             live_segments += segs
-        if self.on_gradients is not None:
-            self.on_gradients([psi_layout(g[:n_jobs].sum(0)) for g in task_grads])
-        total = [psi_layout(g[:n_jobs].sum(0)) for g in task_grads]
-        entry = meta_step(self.optimizer, self.params_list,
-                          [[psi_layout(g[j]) for g in task_grads] for j in range(n_jobs)]
-                          if self.keep_task_grads else [], self.meta_cfg.meta_max_grad_norm,
-                          keep=self.keep_task_grads, total=total)
-        self.meta_updates += 1
-        self.update_log.append({"tasks": self.venv.slot_tasks[:n_jobs].tolist(), **entry})
+        self.task_meta_step(task_grads, n_jobs, self.venv.slot_tasks[:n_jobs].tolist())
         for f in finals:
             f["t0"] = float(f.get("t0", self.t_episode[f["slot"]]))
             f["meta_update"] = self.meta_updates
@@ -580,17 +706,13 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
                     back += rec.back
             grads = self.window_grads(torch.stack(window).sum(), phi, len(rows), views,
                                       entries, back)
-            if len(rows) == b:                                     # g_i: unclipped
-                torch._foreach_add_(task_grads, grads)
+            if len(rows) == b:
                 state = detach_state(state_w)
             else:
-                for g_i, g in zip(task_grads, grads, strict=True):
-                    g_i.index_add_(0, idx, g)
                 h, c, p = (x.detach().index_copy(0, idx, y.detach())
                            for x, y in zip(state, state_w, strict=True))
                 state = (h, c, p)
-            clip_per_slot(grads, cfg.max_grad_norm)
-            opt.step(grads, rows.tolist())
+            self.step_slots(grads, rows)  # g_i += grads (unclipped); clip; Adam
         for f in finals:
             f["t0"] = float(self.t_episode[f["slot"]])
         sums += [pl, vl, ent]

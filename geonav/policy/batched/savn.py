@@ -88,6 +88,12 @@ class BatchedSAVNTrainer(BatchedTrainer):
         """Every slot starts a new episode (meta-training pins their tasks first)."""
         self.venv.reset()
 
+    def round_slots(self) -> np.ndarray:
+        """(B,) bool: the slots that play an episode in this round (every one here;
+        meta-training leaves out the slots without a task visit at the end of its budget).
+        The others step masked, as a slot whose episode has ended."""
+        return np.ones(self.batch, bool)
+
     def interaction_loss(self, rows: torch.Tensor) -> torch.Tensor:
         """(B, k, H + A) -> (B,) learned losses, the aux module applied per slot."""
         tcn = self.aux_module()
@@ -110,7 +116,7 @@ class BatchedSAVNTrainer(BatchedTrainer):
         adapted: Adapted = {}
         z = torch.zeros(b, self.net_cfg.lstm_size, dtype=dtype, device=dev)
         state = (z, z.clone(), torch.zeros(b, self.net_cfg.n_actions, dtype=dtype, device=dev))
-        alive = np.ones(b, bool)
+        alive = self.round_slots()
         inner = np.zeros(b, np.int64)
         logits, values, actions, rewards, ends, masks = [], [], [], [], [], []
         finals: list[dict[str, Any]] = []
