@@ -75,17 +75,23 @@ def test_isar_and_savn_with_the_trainable_cnn_run_batched(scene_files, tmp_path,
     assert len((run / "metrics.csv").read_text().splitlines()) == 1 + 6
 
 
-def test_meta_isar_with_the_trainable_cnn_falls_back_to_async():
-    """Per-task copies of the trainable CNN (meta-training's ISAR and A3C bases) are not
-    implemented on the batched engine: async, with the reason."""
+def test_meta_isar_with_the_trainable_cnn_runs_batched():
+    """Per-task copies of the trainable CNN (meta-training's ISAR and A3C bases) run on the
+    batched engine (run-stacked phi^i, tests/test_batched_meta.py), and so does the SAVN
+    base with E > 1: no fallback."""
     from geonav.policy.engine import build_meta_trainer
-    from geonav.policy.meta_config import ISARConfig, MetaConfig
+    from geonav.policy.meta_config import ISARConfig, MetaConfig, SAVNConfig
     from geonav.policy.testing import tiny_env_factory, tiny_net
 
     t = build_meta_trainer("isar", "batched", tiny_env_factory(), tiny_net("cnn"),
                            ISARConfig(), MetaConfig(episodes=1, workers=0),
                            tensorboard=False)
-    assert t.engine_choice.engine == "async" and "frozen encoder" in t.engine_choice.reason
+    assert t.engine_choice.engine == "batched"
+    t = build_meta_trainer("savn", "batched", tiny_env_factory(), tiny_net("cnn"),
+                           SAVNConfig(), MetaConfig(episodes=2, workers=0,
+                                                    episodes_per_task=2),
+                           tensorboard=False)
+    assert t.engine_choice.engine == "batched"
 
 
 def test_resume_from_an_earlier_checkpoint_drops_the_later_rows(scene_files, tmp_path):

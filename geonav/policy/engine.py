@@ -140,9 +140,6 @@ def build_meta_trainer(algo: str, engine: str, env_factory: Any, net_cfg: Any, b
 
             net_cfg = load_checkpoint(kwargs["resume"]).net_config  # the resumed network
         reason = _fallback_reason(algo, net_cfg, base_cfg, False, False)
-        if reason is None and algo != "savn" and (net_cfg is None or net_cfg.encoder == "cnn"):
-            reason = (f"batched meta-training with the {algo.upper()} base needs a frozen "
-                      "encoder (per-task copies of the trainable CNN are not implemented)")
         if reason is None:
             from geonav.policy.batched.meta import BATCHED_META
 

@@ -472,7 +472,6 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
     its ``lr`` and Adam settings are the in-task Adam's, ``max_grad_norm`` its clip)."""
 
     base_algo = "isar"
-    per_slot_parameters = True
     many_episodes_per_task = True
     cfg: Any
     """An ISARConfig (ISAR base) or an A3CConfig (A3C base)."""
@@ -484,6 +483,8 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
                               "'async' only")
         check_a3c_base(base_cfg, PPO_BASE_META)
         super().__init__(env_factory, net_cfg, base_cfg, meta_cfg, **kwargs)
+        # the trainable CNN: phi^i run-stacked in the model's layout, autograd gradients
+        self.transposed_slots = self.frozen is not None
 
     def schedule(self) -> tuple[int, int]:
         """(steps per segment N, segments per window K)."""
@@ -513,17 +514,18 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
         return ViewBases(phi, self.table, self.venv, self.schedule(), rows)
 
     def segment(self, phi: dict[str, torch.Tensor], adapted: Adapted, state: State,
-                alive: np.ndarray, views: ViewBases, rec: Recorder | None,
+                alive: np.ndarray, views: ViewBases | None, rec: Recorder | None,
                 rows: np.ndarray) -> tuple[LossTerms, State, list[dict[str, Any]]]:
         """Up to N lock-step steps with the graph under theta_s = phi^s + factors, the
         linear maps recorded in ``rec``: (the live slots' summed segment loss, the state,
         the finished episodes). The network runs on the window's slots ``rows`` (the
         slots live at its start, ascending; ``phi``, ``adapted`` and ``state`` hold their
-        rows only); ``alive`` (B,) is updated in place."""
+        rows only); ``alive`` (B,) is updated in place. ``views`` None: the trainable CNN
+        (every slot's rows, run-stacked phi; each slot's views encoded with its adapted
+        weights, its target once per segment, recorded for the inner step)."""
         lc, e, dev = self.cfg.loss, self.net_cfg.embed_dim, self.device
         logits, values, actions, masks, rewards, ends, end_values = [], [], [], [], [], [], []
         finals: list[dict[str, Any]] = []
-        assert self.table is not None
         table = self.table
         every = len(rows) == self.batch
         rows_t = None if every else torch.from_numpy(rows).to(dev)
@@ -531,10 +533,18 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
         # with the Gram matrix the view embeddings' factors look their inputs up by row
         # index and their bases come from ViewBases: the feature rows themselves are not
         # read, so a zero placeholder of their shape saves two gathers per step
-        blank = table.new_zeros(len(rows), table.shape[1]) if self.gram is not None else None
+        blank = table.new_zeros(len(rows), table.shape[1]) \
+            if table is not None and self.gram is not None else None
+        cnn_tgt = None if views is not None else \
+            self.slot_views(phi, adapted, self.slot_indices()[1], rec)
 
         def step(st: State, r: Recorder | None, leaf: bool) -> tuple[Any, Any, State]:
             vi, ti = self.slot_indices()
+            if views is None:  # the trainable CNN, every slot
+                return factored_step(phi, e, self.slot_views(phi, adapted, vi, r), cnn_tgt,
+                                     st, adapted, r, None, vi, ti,
+                                     self.slot_prev(phi, adapted, vi, r))
+            assert table is not None
             if rows_t is not None:
                 vi, ti = vi[rows_t], ti[rows_t]
             obs_f, tgt_f = (blank, blank) if blank is not None else (table[vi], table[ti])
@@ -575,7 +585,7 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
         return terms, state, finals
 
     def window_grads(self, loss: torch.Tensor, phi: dict[str, torch.Tensor], n_rows: int,
-                     views: ViewBases, entries: list[Any], back: list[Any]
+                     views: ViewBases | None, entries: list[Any], back: list[Any]
                      ) -> list[torch.Tensor]:
         """grad_phi^s of the window's loss for each of its ``n_rows`` slots, (n_rows, ...)
         per parameter (``phi``: every slot's, for the names and shapes).
@@ -587,9 +597,14 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
         (:func:`~geonav.policy.batched.core.back_grads`); the view embeddings' come from
         their leaves (constant inputs, evaluated once per window). One ``autograd.grad``
         w.r.t. those outputs, then one batched product per layer instead of an outer
-        product per step.
+        product per step. ``views`` None (the trainable CNN): ``phi`` is the run-stacked
+        leaves of every slot, their gradients by autograd.
         """
         names = list(phi)
+        if views is None:
+            gs = torch.autograd.grad(loss, list(phi.values()), allow_unused=True)
+            return [torch.zeros_like(x) if g is None else g.contiguous()
+                    for x, g in zip(phi.values(), gs, strict=True)]
         entries = [en for en in entries if en[0] not in ("obs_embed", "target_embed")]
         ys = list({id(y): y for _, _, y, _ in entries}.values())
         gxs = [gx for _, gx, _ in back]
@@ -665,7 +680,10 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
             rows = np.flatnonzero(alive)
             idx = torch.from_numpy(rows).to(dev)
             at_psi = all(float(opt.steps[s]) == 0.0 for s in rows)
-            if len(rows) == b and not at_psi:
+            cnn = not self.transposed_slots
+            if cnn:  # every slot's row (the CNN's per-slot weights span the B slots)
+                phi_w = RunParams(phi)
+            elif len(rows) == b and not at_psi:
                 phi_w = phi
             elif at_psi:
                 phi_w = AtPsi({n: x.detach() if x.dim() == 2 else
@@ -674,20 +692,21 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
                                for n, x in psi.items()})
             else:
                 phi_w = {n: x.detach()[idx].requires_grad_() for n, x in phi.items()}
-            state_w: State = state if len(rows) == b else \
+            net_rows = np.arange(b) if cnn else rows
+            state_w: State = state if len(net_rows) == b else \
                 (state[0][idx], state[1][idx], state[2][idx])
             adapted: Adapted = {}
             window: list[torch.Tensor] = []
             entries: list[Any] = []
             back: list[Any] = []
-            views = self.view_bases(phi_w, rows)
+            views = None if cnn else self.view_bases(phi_w, rows)
             adapt += alive
             for j in range(k):
                 live_segments += int(alive.sum())
                 last = j == k - 1
                 rec = Recorder(gram=self.gram)
                 terms, state_w, fin = self.segment(phi_w, adapted, state_w, alive, views, rec,
-                                                   rows)
+                                                   net_rows)
                 for f in fin:
                     f["inner_updates"] = int(inner[f["slot"]])
                     f["adaptive_updates"] = int(adapt[f["slot"]])
@@ -699,14 +718,16 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
                 if not alive.any():
                     break
                 if not last:
-                    live = torch.from_numpy(alive[rows]).to(dev, dtype)
+                    live = torch.from_numpy(alive[net_rows]).to(dev, dtype)
                     adapted = rec.inner_factors(terms.total, adapted, cfg.alpha,
                                                 create_graph=second_order, weights=live)
                     inner += alive
                     back += rec.back
-            grads = self.window_grads(torch.stack(window).sum(), phi, len(rows), views,
+            grads = self.window_grads(torch.stack(window).sum(), phi, len(net_rows), views,
                                       entries, back)
-            if len(rows) == b:
+            if len(net_rows) > len(rows):  # the CNN's rows of slots whose episode ended
+                grads = [g[idx].contiguous() for g in grads]
+            if len(net_rows) == b:
                 state = detach_state(state_w)
             else:
                 h, c, p = (x.detach().index_copy(0, idx, y.detach())
