@@ -1,4 +1,4 @@
-"""Batched meta-training (E = 1): the reference MetaTrainer's meta update, learning, resume."""
+"""Batched meta-training: the reference MetaTrainer's meta update, learning, resume."""
 
 import functools
 import json
@@ -192,21 +192,25 @@ def corner_tasks(max_steps=7):
     return multi_task_factory(4, max_steps=max_steps)
 
 
-@pytest.mark.parametrize("algo", ["isar", "a3c"])
-def test_learns_tiny_meta_task_set(algo):
+@pytest.mark.parametrize("case", ["isar", "a3c", "savn-E2", "isar-cnn", "a3c-cnn"])
+def test_learns_tiny_meta_task_set(case):
     """Greedy success over every start of every meta-task, far beyond random (meta Adam,
-    as the SAVN row's; with Eq. 1's SGD at eta 1e-2 this budget is too small)."""
+    as the SAVN row's; with Eq. 1's SGD at eta 1e-2 this budget is too small). savn-E2:
+    E = 2 episodes per task visit on per-task parameters; -cnn: the trainable CNN."""
+    algo, e = case.split("-")[0], 2 if "-E2" in case else 1
+    encoder = "cnn" if case.endswith("-cnn") else "random"
     factory = corner_tasks()
     env = factory()
-    base = ISARConfig(lr=1e-3, alpha=1e-2, adam_eps=1e-5, amsgrad=False, second_order=False,
-                      eval_every=0) if algo == "isar" else \
-        A3CConfig(lr=1e-3, adam_eps=1e-5, amsgrad=False, eval_every=0)
+    kw = {"lr": 1e-3, "adam_eps": 1e-5, "amsgrad": False, "eval_every": 0}
+    base = {"isar": lambda: ISARConfig(alpha=1e-2, second_order=False, **kw),
+            "a3c": lambda: A3CConfig(**kw), "savn": lambda: SAVNConfig(**kw)}[algo]()
     meta = MetaConfig(episodes=2000, batch_tasks=16, meta_optimizer="adam", meta_lr=1e-3,
-                      seed=1)
-    t = build_meta_trainer(algo, "batched", factory, tiny_net("random", 32), base, meta,
+                      seed=1, episodes_per_task=e)
+    t = build_meta_trainer(algo, "batched", factory, tiny_net(encoder, 32), base, meta,
                            tensorboard=False)
+    assert t.engine_choice.engine == "batched"
     res = t.train()
-    assert t.meta_updates == 125 and res.episodes == 2000
+    assert t.meta_updates == -(-2000 // (16 * e)) and res.episodes == 2000
     sr, rnd = greedy_sr(res.model, t.frozen, env), random_sr(env)
     assert rnd < 0.2 and sr >= rnd + 0.5, (sr, rnd)
 

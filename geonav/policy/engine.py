@@ -7,9 +7,8 @@ the paper-faithful asynchronous form and the reference the batched learners are 
 against. Both write the same run folders, checkpoints and metrics.
 
 Where the batched engine does not implement a combination (ISAR without the
-partial-window flush; the previous-altitude view input outside ISAR and SAVN;
-meta-training with the ISAR or A3C base and the trainable CNN, or the SAVN base with
-E > 1), :func:`resolve` (or :func:`build_meta_trainer`) falls
+partial-window flush; the previous-altitude view input outside ISAR and SAVN),
+:func:`resolve` (or :func:`build_meta_trainer`) falls
 back to the async trainer, logs a warning and says so in the returned reason, which
 the trainers record in config.json.
 PPO, and ISAR with ``base_loss = "ppo"``, exist on the batched engine only.
@@ -122,8 +121,8 @@ def build_meta_trainer(algo: str, engine: str, env_factory: Any, net_cfg: Any, b
                        meta_cfg: Any, *, batch: int | None = None, device: str | None = None,
                        **kwargs: Any) -> Any:
     """Meta-training on the batched engine where it is implemented (SAVN, ISAR and A3C
-    bases; E = 1 for SAVN, a frozen encoder for ISAR and A3C:
-    :mod:`geonav.policy.batched.meta`), else
+    bases, any E, frozen encoder or trainable CNN: :mod:`geonav.policy.batched.meta`;
+    not ``flush_partial_window = false``), else
     :class:`~geonav.policy.meta.MetaTrainer` (async, with a warning when the batched engine
     was asked for). ``batch`` is unused: B is the meta-batch."""
     if engine not in ENGINES:

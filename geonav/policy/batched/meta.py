@@ -1,7 +1,7 @@
 """Meta-training (Eq. 1, ALGORITHMS.md (d)) on the batched engine.
 
 A meta-iteration takes the next B meta-tasks in cyclic order and runs E episodes of the
-base algorithm on each (``episodes_per_task``; E = 1 with the SAVN base), all B at once:
+base algorithm on each (``episodes_per_task``), all B at once:
 slot j of the round is pinned to task j of the batch and starts from psi. Task i's
 gradient g_i is what the reference (:class:`~geonav.policy.meta.MetaTrainer` and its
 ``TaskRunner``) defines; then
@@ -13,9 +13,15 @@ so a resume starts at a batch boundary and goes on with the cyclic order.
 * **SAVN base** (:class:`BatchedMetaSAVN`, on
   :class:`~geonav.policy.batched.savn.BatchedSAVNTrainer`'s episode-synchronous round):
   g_i is the episode's exact meta-gradient w.r.t. its initial parameters (= psi, and
-  Lambda). With E = 1 the reference's in-task Adam never changes a task gradient (its
-  step follows the only episode and is discarded). The trainable CNN adapts per slot as
-  in single-task SAVN. E > 1 would need per-task copies of psi: the async engine runs it.
+  Lambda). With E = 1 the slots run psi itself (the reference's in-task Adam never
+  changes a task gradient: its step follows the only episode and is discarded), and one
+  backward of the round gives sum_i g_i. With E > 1 each slot carries its own phi^i of the
+  policy and of Lambda, run-stacked (B, ...) in the model's layout as packed runs of one
+  slot each (:class:`~geonav.policy.batched.core.RunParams`; the trainable CNN per slot
+  too), and its own fresh in-task Adam (:class:`SlotAdam`, below): one SAVN round per
+  episode of the visits, each slot's meta-gradient w.r.t. its phi^i added to g_i,
+  clipped per slot to ``max_grad_norm`` and stepped by its Adam, as the reference's
+  TaskRunner does. In both, the trainable CNN adapts per slot as in single-task SAVN.
 * **ISAR base** (:class:`BatchedMetaISAR`): each slot carries its own copy of the
   parameters, phi^i, stacked along a leading dim (B, ...) (per-slot weights of every
   linear map, :func:`~geonav.policy.batched.core.linear`), and its own fresh in-task
@@ -30,7 +36,11 @@ so a resume starts at a batch boundary and goes on with the cyclic order.
   (K segments, or the episode end) grad_phi^i of the window's summed L_adapt is added,
   unclipped, to g_i, clipped per slot to ``max_grad_norm`` and stepped by the slot's
   Adam; theta <- phi^i, h detached. g_i = sum over windows of those gradients (first
-  order in psi: d phi^i / d psi is taken as I). Needs a frozen encoder.
+  order in psi: d phi^i / d psi is taken as I). With the trainable CNN, phi^i is
+  run-stacked in the model's layout instead (every slot's row in every window, each
+  slot's views encoded with its own adapted CNN weights, its target once per segment),
+  and the window gradients come from autograd: the cost notes below are the frozen
+  encoder's.
 * **A3C base** (:class:`BatchedMetaA3C`): the same with windows of one segment of
   ``t_max`` steps and no inner step: one per-task Adam step per rollout, g_i the sum of
   the rollout gradients (ISAR with K = 1 is the A3C worker's update exactly).
@@ -56,15 +66,16 @@ part does not amortise with B. What keeps it small:
   product sum_t x_t^T u_t per window;
 * :class:`SlotAdam` steps every live slot's rows in one call of torch's fused Adam.
 
-Per-slot weights are stored transposed, (B, in, out): x W_s is a row-vector batched
-product, 5-10x faster on the CPU than W_s x.
+With a frozen encoder the ISAR and A3C bases' per-slot weights are stored transposed,
+(B, in, out): x W_s is a row-vector batched product, 5-10x faster on the CPU than W_s x.
 
 All slots start together with h = 0, so their segments and windows fall on the same
 global clock as each reference episode's own; a slot whose episode ends waits (its later
 steps are masked out, its partial window is flushed at the window end, where its phi^i
 has not changed since, so this is the reference's flush at done) until every slot has
-finished. ``tests/test_batched_meta.py`` checks the meta update of B = 1 and B = 3 tasks
-(E = 1 and 2) against the reference's in float64 on forced trajectories.
+finished. ``tests/test_batched_meta.py`` checks the task gradients and the meta update
+of B = 1 and B = 3 tasks (E = 1 and 2; frozen encoder and trainable CNN) against the
+reference's in float64 on forced trajectories.
 """
 
 from __future__ import annotations
