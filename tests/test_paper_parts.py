@@ -136,10 +136,41 @@ def test_sweep_parts_are_covered(paper: ExperimentConfig) -> None:
         assert stages and set(stages) <= others, part
 
 
+@pytest.fixture
+def loaded_inits(monkeypatch: pytest.MonkeyPatch) -> dict[str, str]:
+    """Unit folder -> the checkpoint whose weights its train or meta-train unit started
+    from, each load checked to have copied those weights into the unit's model (the units
+    run one at a time in a thread of this process: LocalBackend(jobs=0))."""
+    import torch
+
+    from geonav.experiments import stages
+    from geonav.policy.checkpoint import load_checkpoint
+
+    seen: dict[str, str] = {}
+    current: dict[str, str] = {}
+    execute, load_init = stages.execute_stage, stages._load_init
+
+    def execute_spy(p: dict[str, Any]) -> dict[str, Any]:
+        current["unit"] = p["out_dir"]
+        return execute(p)
+
+    def load_spy(model: Any, path: str | None, env: Any) -> None:
+        load_init(model, path, env)
+        if path:
+            want = load_checkpoint(path).model_state
+            for name, value in model.state_dict().items():
+                torch.testing.assert_close(value, want[name], msg=name)
+            seen[current["unit"]] = path
+
+    monkeypatch.setattr(stages, "execute_stage", execute_spy)
+    monkeypatch.setattr(stages, "_load_init", load_spy)
+    return seen
+
+
 @pytest.mark.parametrize("part", [p for p in parse_config(_paper_data(), str(PAPER)).parts()
                                   if p not in SWEEP_PARTS])
 def test_paper_part_runs_tiny(part: str, tiny: ExperimentConfig, inputs: Path,
-                              tmp_path: Path) -> None:
+                              tmp_path: Path, loaded_inits: dict[str, str]) -> None:
     from geonav.experiments.runner import run_experiments
 
     summary = run_experiments([tiny], tmp_path, only=[part], jobs=0,
@@ -151,25 +182,37 @@ def test_paper_part_runs_tiny(part: str, tiny: ExperimentConfig, inputs: Path,
     comp = next(c for c in written["comparisons"] if c["part"] == part)
     spec = next(c for c in tiny.compare if (c.part or c.name) == part)
     assert list(comp["methods"]) == list(spec.methods)
+    assert f"## {spec.name}" in (root / "report.md").read_text()
     for method in spec.methods:
         rec = comp["methods"][method]
         assert len(rec["runs"]) == len(tiny.seeds), method
+        assert sorted(r["seed"] for r in rec["runs"]) == sorted(tiny.seeds), method
         for run in rec["runs"]:
             ev = run["eval"]
             assert 0.0 <= ev["greedy_sr"] <= 1.0, method
-            assert 0.0 <= ev["random_walk_sr"] <= 1.0, method
+            assert 0.0 <= ev["random_walk_sr"] <= TINY_RANDOM_WALK, method
+            # budgets below 2 W: the training-SR rule cannot be met
+            assert run["conv"]["censored"], method
     for key in tiny.stages_for([part]):
-        parent = tiny.stages[key].init
+        stage = tiny.stages[key]
         for seed in tiny.seeds:
             unit = root / "units" / key / f"seed-{seed}"
             result = json.loads((unit / "result.json").read_text())
+            assert (result["mode"], result["algo"]) == (stage.mode, stage.algo), key
             assert Path(result["checkpoint"]).exists(), key
-            if parent is None:
-                assert "zero_shot" not in result["eval"], key
+            if stage.init is None:
+                assert str(unit) not in loaded_inits and "zero_shot" not in result["eval"], key
                 continue
-            # started from its parent's final checkpoint (same seed)
-            parent_result = json.loads(
-                (root / "units" / parent / f"seed-{seed}" / "result.json").read_text())
+            # started from its parent's final checkpoint of the same seed
+            parent = json.loads((root / "units" / stage.init / f"seed-{seed}" /
+                                 "result.json").read_text())["checkpoint"]
             assert result["eval"]["zero_shot"], key
-            payload = json.loads((unit / "config.json").read_text())
-            assert parent_result["checkpoint"] in json.dumps(payload), key
+            if stage.mode == "curriculum":
+                state = json.loads((unit / "curriculum.json").read_text())
+                assert state["init"] == parent, key
+                assert [s["alt_m"] for s in state["stages"]] == \
+                    list(tiny.tasks[stage.tasks].alts_m), key
+                if stage.options.get("teacher", "kl") == "kl":
+                    assert all(s["teacher"] for s in state["stages"][1:]), key
+            else:
+                assert loaded_inits[str(unit)] == parent, key
