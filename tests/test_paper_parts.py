@@ -167,6 +167,10 @@ def loaded_inits(monkeypatch: pytest.MonkeyPatch) -> dict[str, str]:
     return seen
 
 
+@pytest.mark.slow
+# the tiny scenes are small and coarse on purpose: their warnings say so
+@pytest.mark.filterwarnings(
+    "ignore:scene [A-Z]. (imagery at|the scene is) :geonav.errors.GeonavWarning")
 @pytest.mark.parametrize("part", [p for p in parse_config(_paper_data(), str(PAPER)).parts()
                                   if p not in SWEEP_PARTS])
 def test_paper_part_runs_tiny(part: str, tiny: ExperimentConfig, inputs: Path,
