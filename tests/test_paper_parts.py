@@ -31,7 +31,8 @@ PAPER = Path(__file__).resolve().parent.parent / "configs" / "paper.toml"
 
 SWEEP_PARTS = ("isar-alpha", "savn-inner")
 """Parts that are sweeps over one stage (`geonav experiment sweep`) whose stage another part
-already runs; test_sweep_parts_are_covered checks that, the end-to-end test skips them."""
+already runs; test_sweep_parts_are_covered checks that, the end-to-end test does not run
+them alone (their report sections come out of isar-vs-savn's run)."""
 
 TINY_NET = {"embed_dim": 16, "hidden_size": 32, "lstm_size": 32}
 """Network sizes of the policy tests (tests/test_policy_model.py), added to every stage."""
@@ -183,6 +184,11 @@ def test_paper_part_runs_tiny(part: str, tiny: ExperimentConfig, inputs: Path,
     assert not summary["failed"], summary["failed"]
     assert (root / "report.md").exists()
     written = json.loads((root / "summary.json").read_text())
+    # every comparison whose methods all ran is reported: with isar-vs-savn, also the
+    # one-stage sweep parts isar-alpha and savn-inner
+    ran = set(tiny.stages_for([part]))
+    assert [c["part"] for c in written["comparisons"]] == \
+        [c.part for c in tiny.compare if set(c.methods) <= ran]
     comp = next(c for c in written["comparisons"] if c["part"] == part)
     spec = next(c for c in tiny.compare if (c.part or c.name) == part)
     assert list(comp["methods"]) == list(spec.methods)
