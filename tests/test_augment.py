@@ -265,6 +265,48 @@ def test_augmented_meta_train_stage_runs_end_to_end(files):
                                   options=dict(p["options"], augment={"blur_px": -1})))
 
 
+@pytest.mark.parametrize("per_step", [False, True])
+def test_meta_isar_view_embeddings_read_the_episode_variant(files, tmp_path, monkeypatch,
+                                                            per_step):
+    """Batched meta-ISAR's per-window view embeddings (ViewBases) read each slot's views and
+    target under its episode's imagery variant, the rows slot_indices() gives. Before, the
+    per-window table of a small task (paper.toml's meta25_aug, shrunk) indexed past the
+    clean rows and raised IndexError, and the target was always the clean view."""
+    import torch
+
+    from geonav.policy.batched import meta as meta_mod
+    from geonav.policy.config import NetConfig
+    from geonav.policy.engine import build_meta_trainer
+    from geonav.policy.envs import EnvFactory
+    from geonav.policy.meta_config import MetaConfig, base_config
+
+    if per_step:  # the view embeddings per step, not as a table per window
+        monkeypatch.setattr(meta_mod, "PRE_TABLE_VIEWS_PER_STEP", 0)
+    factory = EnvFactory(str(files / "scene"), str(files / "tasks.json"),
+                         augment=AugmentConfig(variants=2, seed=1))
+    t = build_meta_trainer("isar", "batched", factory,
+                           NetConfig(encoder="random", obs_size_px=32, hidden_size=16,
+                                     lstm_size=16),
+                           base_config("isar", {"episodes": 4}),
+                           MetaConfig(episodes=4, workers=0, batch_tasks=2),
+                           out_dir=str(tmp_path), tensorboard=False)
+    t.train()
+    venv = t.venv
+    venv.reset(variants=[1, 2])
+    phi, _, _ = t.task_parameters()
+    views = t.view_bases(phi, np.arange(venv.n_slots))
+    vi, ti = t.slot_indices()
+    assert (vi >= venv.n_cells).all()  # not the clean rows
+    w, b = phi["obs_embed.weight"].detach(), phi["obs_embed.bias"].detach()
+    torch.testing.assert_close(
+        views.obs(vi, False), torch.baddbmm(b.unsqueeze(1), t.table[vi].unsqueeze(1), w)
+        .squeeze(1))
+    w, b = phi["target_embed.weight"].detach(), phi["target_embed.bias"].detach()
+    torch.testing.assert_close(
+        views.target.detach(), torch.baddbmm(b.unsqueeze(1), t.table[ti].unsqueeze(1), w)
+        .squeeze(1))
+
+
 def test_cli_train_with_augment(files, tmp_path):
     from geonav.policy import cli
 

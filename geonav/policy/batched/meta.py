@@ -772,7 +772,11 @@ class ViewBases:
         self.slots = torch.arange(len(rows), device=table.device)
         tasks = venv.task[rows]
         sizes = venv.nx[tasks] * venv.ny[tasks]
-        self.first = torch.from_numpy(venv.offsets[tasks]).to(table.device)
+        # with imagery variants, row k * n_cells + v is view v under variant k, and an
+        # episode keeps its variant (geonav.vecenv): the slots' views and targets are read
+        # from their episode's variant, as slot_indices() gives them
+        first = venv.variant[rows] * venv.n_cells + venv.offsets[tasks]
+        self.first = torch.from_numpy(first).to(table.device)
         w, bias = phi["obs_embed.weight"].detach(), phi["obs_embed.bias"].detach()
         shared = isinstance(phi, AtPsi)  # psi's (out, in) weights for every slot
         self.pre: torch.Tensor | None = None
@@ -782,7 +786,7 @@ class ViewBases:
         # keeps the per-step working set (the other layers' weights of every slot) in cache
         if int(sizes.max()) <= PRE_TABLE_VIEWS_PER_STEP * schedule[0] * schedule[1]:
             cells = self.first[:, None] + torch.arange(int(sizes.max()), device=table.device)
-            cells = torch.minimum(cells, torch.from_numpy(venv.offsets[tasks] + sizes - 1)
+            cells = torch.minimum(cells, torch.from_numpy(first + sizes - 1)
                                   .to(table.device)[:, None])
             if not shared:
                 self.pre = torch.baddbmm(bias.unsqueeze(1), table[cells], w)
@@ -790,7 +794,7 @@ class ViewBases:
                 self.pre = torch.nn.functional.linear(table, w)[cells] + bias.unsqueeze(1)
             else:
                 self.pre = torch.nn.functional.linear(table[cells], w) + bias.unsqueeze(1)
-        tgt = torch.from_numpy(venv.target_view[tasks]).to(table.device)
+        tgt = torch.from_numpy(venv.target_index[rows]).to(table.device)
         self.target_rows = tgt
         wt, bt = phi["target_embed.weight"].detach(), phi["target_embed.bias"].detach()
         self.target = torch.baddbmm(bt.unsqueeze(1), table[tgt].unsqueeze(1), wt).squeeze(1) \

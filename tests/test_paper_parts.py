@@ -1,0 +1,228 @@
+"""Every part of configs/paper.toml, shrunk to seconds, end to end (issue 12: "a tiny version
+of each part runs end to end in the suite").
+
+The real paper.toml is read and shrunk by :func:`shrink`: small synthetic scenes, lattices
+of a few cells, two meta-tasks, budgets of a few dozen episodes below 2 W (so no run can
+converge and the noise check accepts the rule, as in configs/tiny.toml), one seed, no
+worker processes and the small networks of the policy tests. Everything that makes a stage
+the one the paper's protocol runs stays as paper.toml has it: mode, algo, init chain,
+encoder, preset, base_loss, teacher, augment, alpha, lr, lr_warmup, stop_at_convergence
+and the [[compare]] tables.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - Python 3.10
+    import tomli as tomllib
+
+from geonav.experiments.config import ExperimentConfig, parse_config
+
+PAPER = Path(__file__).resolve().parent.parent / "configs" / "paper.toml"
+
+SWEEP_PARTS = ("isar-alpha", "savn-inner")
+"""Parts that are sweeps over one stage (`geonav experiment sweep`) whose stage another part
+already runs; test_sweep_parts_are_covered checks that, the end-to-end test does not run
+them alone (their report sections come out of isar-vs-savn's run)."""
+
+TINY_NET = {"embed_dim": 16, "hidden_size": 32, "lstm_size": 32}
+"""Network sizes of the policy tests (tests/test_policy_model.py), added to every stage."""
+
+SHRUNK_OPTIONS = ("eval_every", "batch_tasks")
+"""Stage options whose values the shrink changes (the rest are kept as paper.toml has them)."""
+
+ADDED_OPTIONS = (*TINY_NET, "max_steps")
+"""Stage options the shrink adds: the network sizes, and a curriculum's episode cap (its
+CurriculumConfig.max_steps, 120 by default, would otherwise override the tiny task's)."""
+
+TINY_RANDOM_WALK = 0.5
+"""The tasks' random-walk cap after the shrink (paper.toml: 0.05, which needs ~20 x 20 cells)."""
+
+EPISODES = 24
+"""Budget of every stage (per curriculum level); below 2 W with W = 40."""
+
+
+def shrink(data: dict[str, Any]) -> dict[str, Any]:
+    """A copy of a paper.toml document that runs each part in seconds (see the module
+    docstring); stage modes, algorithms, init chains and method options are untouched."""
+    d = copy.deepcopy(data)
+    d["seeds"] = [0]
+    d["eval_starts"] = 8
+    # budgets (EPISODES) below 2 W: no run can converge, so no noise can either
+    d["convergence"] = {"window": 40, "threshold": 0.97, "hold": 0.9, "eval_threshold": 0.97}
+    for scene in d["scenes"].values():
+        scene.update(size_m=400.0, gsd_m=2.0)
+    for task in d["tasks"].values():
+        # 3 x 3 cells of 15 m; a 45 m region fits a 400 m scene with the 300 m view margin
+        task.update(size_m=45.0, step_m=15.0, max_steps=8, obs_size_px=32)
+        if task.get("max_random_walk") is not None:
+            # chance solves a 3 x 3 lattice about a third of the time: the sampler keeps
+            # its cap, loosened to what so few cells allow
+            task["max_random_walk"] = TINY_RANDOM_WALK
+        if task.get("kind", "meta") == "meta":
+            task["count"] = min(int(task.get("count", 1)), 2)
+    for stage in d["stages"].values():
+        stage["episodes"] = EPISODES
+        stage["workers"] = 0
+        if "eval_every" in stage:
+            stage["eval_every"] = EPISODES // 2
+        if "batch_tasks" in stage:
+            stage["batch_tasks"] = 2
+        stage.update(TINY_NET)
+        if stage["mode"] == "curriculum":
+            stage["max_steps"] = d["tasks"][stage["tasks"]]["max_steps"]
+    return d
+
+
+def _paper_data() -> dict[str, Any]:
+    return tomllib.loads(PAPER.read_text())
+
+
+@pytest.fixture(scope="module")
+def paper() -> ExperimentConfig:
+    return parse_config(_paper_data(), str(PAPER))
+
+
+@pytest.fixture(scope="module")
+def tiny() -> ExperimentConfig:
+    return parse_config(shrink(_paper_data()), "paper.toml (shrunk)")
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """One folder for the scenes and task sets of every part (made once, by hash)."""
+    return tmp_path_factory.mktemp("paper-inputs")
+
+
+def test_shrink_keeps_every_stage_and_comparison(paper: ExperimentConfig,
+                                                 tiny: ExperimentConfig) -> None:
+    assert tiny.parts() == paper.parts()
+    assert tiny.compare == paper.compare
+    assert set(tiny.stages) == set(paper.stages) and set(tiny.tasks) == set(paper.tasks)
+    for key, st in paper.stages.items():
+        small = tiny.stages[key]
+        assert (small.mode, small.algo, small.tasks, small.init) == \
+            (st.mode, st.algo, st.tasks, st.init), key
+        assert set(st.options) <= set(small.options), key
+        assert set(small.options) - set(st.options) <= set(ADDED_OPTIONS), key
+        kept = {k: v for k, v in st.options.items() if k not in SHRUNK_OPTIONS}
+        assert {k: small.options[k] for k in kept} == kept, key
+        assert small.episodes < 2 * tiny.convergence.window and small.workers == 0
+    for key, t in paper.tasks.items():
+        small = tiny.tasks[key]
+        assert (small.scene, small.kind, small.alt_m, small.alts_m, small.fov_deg,
+                small.seed, small.max_overlap, small.max_random_walk is None) == \
+            (t.scene, t.kind, t.alt_m, t.alts_m, t.fov_deg, t.seed, t.max_overlap,
+             t.max_random_walk is None), key
+    for key, s in paper.scenes.items():
+        assert (tiny.scenes[key].synthetic, tiny.scenes[key].seed) == (s.synthetic, s.seed)
+
+
+def test_sweep_parts_are_covered(paper: ExperimentConfig) -> None:
+    """isar-alpha and savn-inner are one-stage parts run as sweeps; the stage each sweeps
+    is a method of another part, which the end-to-end test runs."""
+    for part in SWEEP_PARTS:
+        stages = paper.stages_for([part])
+        others = {s for p in paper.parts() if p not in SWEEP_PARTS
+                  for s in paper.stages_for([p])}
+        assert stages and set(stages) <= others, part
+
+
+@pytest.fixture
+def loaded_inits(monkeypatch: pytest.MonkeyPatch) -> dict[str, str]:
+    """Unit folder -> the checkpoint whose weights its train or meta-train unit started
+    from, each load checked to have copied those weights into the unit's model (the units
+    run one at a time in a thread of this process: LocalBackend(jobs=0))."""
+    import torch
+
+    from geonav.experiments import stages
+    from geonav.policy.checkpoint import load_checkpoint
+
+    seen: dict[str, str] = {}
+    current: dict[str, str] = {}
+    execute, load_init = stages.execute_stage, stages._load_init
+
+    def execute_spy(p: dict[str, Any]) -> dict[str, Any]:
+        current["unit"] = p["out_dir"]
+        return execute(p)
+
+    def load_spy(model: Any, path: str | None, env: Any) -> None:
+        load_init(model, path, env)
+        if path:
+            want = load_checkpoint(path).model_state
+            for name, value in model.state_dict().items():
+                torch.testing.assert_close(value, want[name], msg=name)
+            seen[current["unit"]] = path
+
+    monkeypatch.setattr(stages, "execute_stage", execute_spy)
+    monkeypatch.setattr(stages, "_load_init", load_spy)
+    return seen
+
+
+@pytest.mark.slow
+# the tiny scenes are small and coarse on purpose: their warnings say so
+@pytest.mark.filterwarnings(
+    "ignore:scene [A-Z]. (imagery at|the scene is) :geonav.errors.GeonavWarning")
+@pytest.mark.parametrize("part", [p for p in parse_config(_paper_data(), str(PAPER)).parts()
+                                  if p not in SWEEP_PARTS])
+def test_paper_part_runs_tiny(part: str, tiny: ExperimentConfig, inputs: Path,
+                              tmp_path: Path, loaded_inits: dict[str, str]) -> None:
+    from geonav.experiments.runner import run_experiments
+
+    summary = run_experiments([tiny], tmp_path, only=[part], jobs=0,
+                              shared_inputs=inputs)[0]
+    root = tmp_path / tiny.name
+    assert not summary["failed"], summary["failed"]
+    assert (root / "report.md").exists()
+    written = json.loads((root / "summary.json").read_text())
+    # every comparison whose methods all ran is reported: with isar-vs-savn, also the
+    # one-stage sweep parts isar-alpha and savn-inner
+    ran = set(tiny.stages_for([part]))
+    assert [c["part"] for c in written["comparisons"]] == \
+        [c.part for c in tiny.compare if set(c.methods) <= ran]
+    comp = next(c for c in written["comparisons"] if c["part"] == part)
+    spec = next(c for c in tiny.compare if (c.part or c.name) == part)
+    assert list(comp["methods"]) == list(spec.methods)
+    assert f"## {spec.name}" in (root / "report.md").read_text()
+    for method in spec.methods:
+        rec = comp["methods"][method]
+        assert len(rec["runs"]) == len(tiny.seeds), method
+        assert sorted(r["seed"] for r in rec["runs"]) == sorted(tiny.seeds), method
+        for run in rec["runs"]:
+            ev = run["eval"]
+            assert 0.0 <= ev["greedy_sr"] <= 1.0, method
+            assert 0.0 <= ev["random_walk_sr"] <= TINY_RANDOM_WALK, method
+            # budgets below 2 W: the training-SR rule cannot be met
+            assert run["conv"]["censored"], method
+    for key in tiny.stages_for([part]):
+        stage = tiny.stages[key]
+        for seed in tiny.seeds:
+            unit = root / "units" / key / f"seed-{seed}"
+            result = json.loads((unit / "result.json").read_text())
+            assert (result["mode"], result["algo"]) == (stage.mode, stage.algo), key
+            assert Path(result["checkpoint"]).exists(), key
+            if stage.init is None:
+                assert str(unit) not in loaded_inits and "zero_shot" not in result["eval"], key
+                continue
+            # started from its parent's final checkpoint of the same seed
+            parent = json.loads((root / "units" / stage.init / f"seed-{seed}" /
+                                 "result.json").read_text())["checkpoint"]
+            assert result["eval"]["zero_shot"], key
+            if stage.mode == "curriculum":
+                state = json.loads((unit / "curriculum.json").read_text())
+                assert state["init"] == parent, key
+                assert [s["alt_m"] for s in state["stages"]] == \
+                    list(tiny.tasks[stage.tasks].alts_m), key
+                if stage.options.get("teacher", "kl") == "kl":
+                    assert all(s["teacher"] for s in state["stages"][1:]), key
+            else:
+                assert loaded_inits[str(unit)] == parent, key
