@@ -25,6 +25,8 @@ def draw_scene(
     camera: Camera | None = None,
     title: str | None = None,
     max_px: int = 1600,
+    bounds_m: tuple[float, float, float, float] | None = None,
+    dpi: int = 120,
 ) -> Path:
     """Draw the scene with task regions, targets, camera footprints and tracks to a PNG.
 
@@ -38,6 +40,9 @@ def draw_scene(
         camera: the camera (footprint sizes).
         title: figure title.
         max_px: the scene image is downsampled to at most this many pixels across.
+        bounds_m: (xmin, ymin, xmax, ymax) in scene metres to show instead of the whole
+            scene (clipped to the scene); only that part of the image is drawn.
+        dpi: figure resolution (the PNG's size grows with its square).
     """
     import matplotlib
 
@@ -47,10 +52,26 @@ def draw_scene(
 
     camera = camera or (tasks.camera if isinstance(tasks, TaskSet) else Camera())
     task_list = list(tasks.tasks if isinstance(tasks, TaskSet) else (tasks or []))
-    step = max(1, int(np.ceil(max(scene.width, scene.height) / max_px)))
-    xmin, ymin, xmax, ymax = scene.bounds_m
-    fig, ax = plt.subplots(figsize=(9, 9 * scene.height / scene.width + 0.6), dpi=120)
-    ax.imshow(scene.rgb[::step, ::step], extent=(xmin, xmax, ymin, ymax), interpolation="none")
+    sx0, sy0, sx1, sy1 = scene.bounds_m
+    if bounds_m is None:
+        xmin, ymin, xmax, ymax = sx0, sy0, sx1, sy1
+    else:
+        xmin, ymin = max(bounds_m[0], sx0), max(bounds_m[1], sy0)
+        xmax, ymax = min(bounds_m[2], sx1), min(bounds_m[3], sy1)
+        if xmax <= xmin or ymax <= ymin:
+            raise ValueError(f"bounds_m {bounds_m} do not overlap the scene {scene.bounds_m}")
+    # Pixel window of the shown part (row 0 is the north edge).
+    c0 = int(np.floor((xmin - sx0) / scene.gsd_m))
+    c1 = int(np.ceil((xmax - sx0) / scene.gsd_m))
+    r0 = int(np.floor((sy1 - ymax) / scene.gsd_m))
+    r1 = int(np.ceil((sy1 - ymin) / scene.gsd_m))
+    step = max(1, int(np.ceil(max(c1 - c0, r1 - r0) / max_px)))
+    w_m, h_m = xmax - xmin, ymax - ymin
+    fig, ax = plt.subplots(figsize=(9, 9 * h_m / w_m + 0.6), dpi=dpi)
+    ax.imshow(scene.rgb[r0:r1:step, c0:c1:step],
+              extent=(sx0 + c0 * scene.gsd_m, sx0 + c1 * scene.gsd_m,
+                      sy1 - r1 * scene.gsd_m, sy1 - r0 * scene.gsd_m),
+              interpolation="none")
     if scene.dsm is not None and footprints_at:
         tall = scene.dsm >= min(footprints_at) - 5.0
         if tall.any():

@@ -488,6 +488,13 @@ def _plot_trajectories(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
     scene = Scene.open(scenes[scene_key])
     out = root / f"trajectories-{_slug(comp.name)}.png"
     used = {id(t[0]): t[0] for t in tracks}
+    # Zoomed to the flown regions and at a modest resolution: a whole 2.5 km scene at
+    # full size made 2.4 MB PNGs of which the tracks filled a corner.
+    regions = np.array([t.region_m for t in used.values()], dtype=float)
+    x0, y0 = regions[:, 0].min(), regions[:, 1].min()
+    x1, y1 = regions[:, 2].max(), regions[:, 3].max()
+    pad = 0.08 * max(x1 - x0, y1 - y0)
     draw_scene(scene, out, tasks=list(used.values()), tracks=tracks, footprints_at=(),
+               bounds_m=(x0 - pad, y0 - pad, x1 + pad, y1 + pad), dpi=90,
                title=f"{comp.name}: greedy trajectories of the final policies")
     return out

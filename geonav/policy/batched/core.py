@@ -34,8 +34,8 @@ Layer order and maths as ActorCritic.forward: embeddings with ReLU, the FC layer
 
 from __future__ import annotations
 
-from collections.abc import Callable
 import weakref
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
