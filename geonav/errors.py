@@ -48,6 +48,10 @@ class ConfigError(GeonavError):
     """A configuration value or option is invalid."""
 
 
+class TrainingDiverged(GeonavError):
+    """A learner's losses became NaN or infinite: the run cannot go on from here."""
+
+
 class CheckpointError(GeonavError):
     """A checkpoint is corrupt or does not match the environment it is used with."""
 

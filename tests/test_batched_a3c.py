@@ -98,3 +98,35 @@ def test_lr_warmup_ramps_the_rate_and_continues_after_resume(tmp_path):
     assert 0 < moved[1000] < 0.1 * moved[0]
     with pytest.raises(ConfigError, match="lr_warmup"):
         A3CConfig(lr_warmup=-1)
+
+
+@pytest.mark.parametrize("engine", ["batched", "async"])
+def test_a_diverged_run_stops_with_a_clear_error(tmp_path, engine):
+    """NaN losses end the run at once with TrainingDiverged, naming the episode, after the
+    metrics CSV has its row (a diverged meta-SAVN run used to train on as NaN and then die
+    in the next evaluation's sampling with "probability tensor contains nan")."""
+    from geonav.errors import TrainingDiverged
+
+    factory = tiny_env_factory(cells=4, max_steps=7)
+    net = tiny_net("random", 32)
+    cfg = A3CConfig(episodes=40, workers=0, seed=0, eval_every=20)
+    out = tmp_path / engine
+    if engine == "batched":
+        t = BatchedA3CTrainer(factory, net, cfg, batch=4, out_dir=out, tensorboard=False)
+        params = t.params_list
+    else:
+        t = A3CTrainer(factory, net, cfg, out_dir=out, tensorboard=False)
+        params = list(t.model.parameters())
+    with torch.no_grad():
+        params[-1].fill_(float("nan"))  # the last layer: every loss of the episode is NaN
+    with pytest.raises(TrainingDiverged, match=r"diverged at episode 1\b.*value_loss = nan"):
+        t.train()
+    rows = read_metrics(out / "metrics.csv")
+    assert rows and rows[0]["episode"] == 1
+
+
+def test_finite_losses_pass_the_check():
+    from geonav.policy.a3c import check_finite_losses
+
+    check_finite_losses({"episode": 3, "policy_loss": -0.2, "value_loss": 1e30, "entropy": 1.3})
+    check_finite_losses({"episode": 3})  # records without losses (nothing to judge)

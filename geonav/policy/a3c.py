@@ -35,7 +35,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from geonav.errors import ConfigError, GeonavError
+from geonav.errors import ConfigError, GeonavError, TrainingDiverged
 from geonav.policy.agent import choose_action, obs_inputs
 from geonav.policy.callbacks import Callback, CSVMetrics, plot_learning_curve, tensorboard_callback
 from geonav.policy.checkpoint import check_compatible, load_checkpoint, make_meta, save_checkpoint
@@ -310,6 +310,27 @@ class TrainResult:
     @property
     def steps_per_s(self) -> float:
         return self.env_steps / max(self.wall_s, 1e-9)
+
+
+LOSS_FIELDS = ("policy_loss", "value_loss", "entropy")
+"""Per-episode loss figures of a training record (the metrics CSV's columns)."""
+
+
+def check_finite_losses(rec: dict[str, Any]) -> None:
+    """Raise :class:`TrainingDiverged` when an episode's recorded losses are NaN or infinite.
+
+    Called after the callbacks have seen the record, so the metrics CSV keeps the row that
+    shows the divergence; without it a diverged run fails later and obscurely (a NaN
+    probability in the next evaluation's sampling) or trains on as NaN.
+    """
+    bad = [k for k in LOSS_FIELDS
+           if isinstance(rec.get(k), (int, float)) and not math.isfinite(rec[k])]
+    if bad:
+        raise TrainingDiverged(
+            f"training diverged at episode {rec.get('episode')}: "
+            f"{', '.join(f'{k} = {rec[k]}' for k in bad)}. The metrics CSV shows the losses "
+            f"growing before it; lower lr (meta_lr for meta-training), or clip gradients "
+            f"(max_grad_norm; meta_max_grad_norm for meta-training)")
 
 
 class A3CTrainer:
@@ -615,6 +636,7 @@ class A3CTrainer:
         for cb in cbs:
             if cb.on_episode(rec) is False:
                 go_on = False
+        check_finite_losses(rec)
         if self._eval_every and self.episodes_done % self._eval_every == 0:
             self.evaluate_now(cbs, result)
         if self.cfg.total_steps and rec["env_steps"] >= self.cfg.total_steps:
