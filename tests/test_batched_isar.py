@@ -38,9 +38,56 @@ def test_b1_first_window_equals_reference_worker(second_order, encoder):
 
 def test_refuses_what_it_does_not_implement():
     factory = tiny_env_factory()
-    with pytest.raises(ConfigError, match="flush_partial_window"):
-        BatchedISARTrainer(factory, tiny_net(), ISARConfig(episodes=1,
-                                                           flush_partial_window=False))
+    with pytest.raises(ConfigError, match="frozen encoder"):
+        BatchedISARTrainer(factory, tiny_net("cnn"), ISARConfig(episodes=1, base_loss="ppo"))
+
+
+def episode_and_updates_grads(ref, bat, updates):
+    """The reference worker's gradients over its first episode (one list per adaptive
+    update), its record, and the batched trainer's first ``updates`` updates' gradients
+    and finished episodes."""
+    worker = ref.inline_worker()
+    ref_grads, got, finals = [], [], []
+    worker.on_gradients = lambda gs: ref_grads.append([g.clone() for g in gs])
+    rec = worker.run_episode(1)
+    bat._setup()
+    bat.on_gradients = lambda gs: got.append([g.clone() for g in gs])
+    for _ in range(updates):
+        finals += bat.update()[0]
+    return ref_grads, rec, got, finals
+
+
+@pytest.mark.parametrize("encoder", ["random", "cnn"])
+def test_b1_without_the_partial_window_flush_equals_reference(float64_default, encoder):
+    """flush_partial_window = false: the first episode (12 steps; windows of 4 segments
+    of 2 steps) has one full window, then ends in segment 1 of the next. The reference
+    takes the full window's update and drops the partial one; the batched window that
+    holds the partial one (and the next episode's first steps) drops the finished
+    episode's steps: its gradient plus the reference's flush gradient P is the flushing
+    trainer's (float64, 1e-10), and P is not 0 (the flag matters)."""
+    factory = tiny_env_factory(cells=5, max_steps=12)
+    net = tiny_net(encoder, 32, size=16)
+    cfg = ISARConfig(episodes=2, workers=0, n_steps=2, k_segments=4, alpha=0.5, seed=4)
+    names = [n for n, _ in ISARTrainer(factory, net, cfg, tensorboard=False)
+             .model.named_parameters()]
+    runs = {}
+    for flush in (True, False):
+        c = replace(cfg, flush_partial_window=flush)
+        runs[flush] = episode_and_updates_grads(
+            ISARTrainer(factory, net, c, tensorboard=False),
+            BatchedISARTrainer(factory, net, c, batch=1, tensorboard=False), 2)
+    (ref_t, rec_t, bat_t, fin_t), (ref_f, rec_f, bat_f, fin_f) = runs[True], runs[False]
+    assert rec_f["length"] == rec_t["length"] == 12  # truncated in window 2's segment 1
+    assert (rec_t["adaptive_updates"], rec_f["adaptive_updates"]) == (2, 1)
+    assert len(ref_t) == 2 and len(ref_f) == 1
+    assert [f["adaptive_updates"] for f in fin_t[:1] + fin_f[:1]] == [2, 1]
+    assert bat_f[0][0].dtype == torch.float64
+    for ref, bat in ((ref_f, bat_f), (ref_t, bat_t)):
+        assert_grads_close(names, ref[0], bat[0], 1e-10, 1e-10)  # the full window
+    flushed = ref_t[1]  # P, the reference's flush of the partial window
+    assert max(float(p.abs().max()) for p in flushed) > 1e-3
+    assert_grads_close(names, bat_t[1], [a + p for a, p in zip(bat_f[1], flushed, strict=True)],
+                       1e-10, 1e-10)
 
 
 @pytest.mark.slow

@@ -41,11 +41,7 @@ class EngineChoice:
 
 def _fallback_reason(algo: str, net_cfg: Any, cfg: Any, teacher: bool, prev_view: bool
                      ) -> str | None:
-    if prev_view and algo not in ("isar", "savn"):
-        return f"the previous-altitude view input is implemented for isar and savn, not {algo}"
-    if algo in ("isar", "savn"):
-        if cfg is not None and not getattr(cfg, "flush_partial_window", True):
-            return "flush_partial_window = false is implemented on the async engine only"
+    """Why the batched engine cannot run this combination, or None (it runs them all)."""
     return None
 
 
