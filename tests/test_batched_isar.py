@@ -181,3 +181,24 @@ def test_b1_first_window_with_previous_view_input_and_cnn_equals_reference(float
     names = [n for n, _ in ref.model.named_parameters()]
     assert_grads_close(names, ref_grads, got, 1e-10, 1e-10)
     assert float(got[names.index("prev_embed.weight")].abs().max()) > 0  # the views reach it
+
+
+@pytest.mark.parametrize("flush", [True, False])
+def test_records_count_the_windows_of_each_episode(flush):
+    """B = 1 on the global clock (windows of W = 4 steps): an episode's adaptive_updates
+    is the number of windows its steps fall in (one ending exactly at a window's end
+    gives the next episode nothing of that window), less the last one when it ends before
+    that window's last segment and the partial window is not flushed."""
+    factory = tiny_env_factory(cells=3, max_steps=6)
+    cfg = ISARConfig(episodes=12, n_steps=2, k_segments=2, seed=1, flush_partial_window=flush)
+    res = BatchedISARTrainer(factory, tiny_net("random", 32, size=16), cfg, batch=1,
+                             tensorboard=False).train()
+    start, seen = 0, set()
+    for r in res.records:
+        end = start + r["length"]  # steps [start, end) of the global clock
+        windows = (end - 1) // 4 - start // 4 + 1
+        partial = (end - 1) % 4 < 2 and not flush  # ended in the window's first segment
+        assert r["adaptive_updates"] == windows - partial, (start, end, r)
+        seen.add((end % 4 == 0, partial))
+        start = end
+    assert (True, False) in seen and (False, not flush) in seen  # both cases met

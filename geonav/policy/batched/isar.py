@@ -257,7 +257,9 @@ class BatchedISARTrainer(BatchedTrainer):
         self.step_optimizer(torch.stack(window).sum() / self.run_batch)
         for _ in range(replays):
             sums = self.replay_window(state0, kept)
-        self.adapt += 1
+        # a slot whose episode ended at the window's last step has no step of its new one
+        # in this window: the update is not the new episode's
+        self.adapt += (~self.fresh).cpu().numpy()
         self.state = detach_state(state)
         b = float(self.run_batch)
         stats = [loss_stats(LossTerms(torch.tensor(0.0), torch.tensor(pl / b),
