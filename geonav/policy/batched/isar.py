@@ -100,7 +100,7 @@ class BatchedISARTrainer(BatchedTrainer):
 
     def segment(self, params: Any, adapted: Adapted, state: Any, keep: bool = False
                 ) -> tuple[torch.Tensor, list[LossTerms], LossTerms, Recorder, Adapted, Any,
-                           list[dict[str, Any]], SegmentData | None]:
+                           list[dict[str, Any]], SegmentData]:
         """N lock-step steps with the graph: (all-steps loss, its terms per run,
         current-episode loss, recorder, adapted weights (finished slots reset to phi),
         state, finished episodes, the segment's data; with ``keep`` it holds what a replay
@@ -284,8 +284,9 @@ class BatchedISARTrainer(BatchedTrainer):
                 out.append(total)
                 continue
             keep = torch.from_numpy(~gone).to(self.device, d.values.dtype)
-            d.weights = [keep if w is None else w * keep for w in d.weights[:-1]] + \
-                [d.weights[-1]]
+            weights: list[torch.Tensor | None] = [keep if w is None else w * keep
+                                                  for w in d.weights[:-1]]
+            d.weights = [*weights, d.weights[-1]]
             if d.kl_weights is not None:
                 d.kl_weights = d.kl_weights * keep
             out.append(self.segment_loss(d.logits, d.values, d)[0])
