@@ -57,16 +57,19 @@ def episode_and_updates_grads(ref, bat, updates):
     return ref_grads, rec, got, finals
 
 
-@pytest.mark.parametrize("encoder", ["random", "cnn"])
-def test_b1_without_the_partial_window_flush_equals_reference(float64_default, encoder):
+@pytest.mark.parametrize("encoder", ["random", "cnn", "random-kl"])
+def test_b1_without_the_partial_window_flush_equals_reference(float64_default, encoder,
+                                                              tmp_path):
     """flush_partial_window = false: the first episode (12 steps; windows of 4 segments
     of 2 steps) has one full window, then ends in segment 1 of the next. The reference
     takes the full window's update and drops the partial one; the batched window that
     holds the partial one (and the next episode's first steps) drops the finished
     episode's steps: its gradient plus the reference's flush gradient P is the flushing
-    trainer's (float64, 1e-10), and P is not 0 (the flag matters)."""
+    trainer's (float64, 1e-10), and P is not 0 (the flag matters). -kl: with the
+    curriculum's KL prior, whose terms are dropped with the steps."""
     factory = tiny_env_factory(cells=5, max_steps=12)
-    net = tiny_net(encoder, 32, size=16)
+    net = tiny_net(encoder.removesuffix("-kl"), 32, size=16)
+    kw = {"teacher": kl_teacher_spec(net, tmp_path)} if encoder.endswith("-kl") else {}
     cfg = ISARConfig(episodes=2, workers=0, n_steps=2, k_segments=4, alpha=0.5, seed=4)
     names = [n for n, _ in ISARTrainer(factory, net, cfg, tensorboard=False)
              .model.named_parameters()]
@@ -74,8 +77,8 @@ def test_b1_without_the_partial_window_flush_equals_reference(float64_default, e
     for flush in (True, False):
         c = replace(cfg, flush_partial_window=flush)
         runs[flush] = episode_and_updates_grads(
-            ISARTrainer(factory, net, c, tensorboard=False),
-            BatchedISARTrainer(factory, net, c, batch=1, tensorboard=False), 2)
+            ISARTrainer(factory, net, c, tensorboard=False, **kw),
+            BatchedISARTrainer(factory, net, c, batch=1, tensorboard=False, **kw), 2)
     (ref_t, rec_t, bat_t, fin_t), (ref_f, rec_f, bat_f, fin_f) = runs[True], runs[False]
     assert rec_f["length"] == rec_t["length"] == 12  # truncated in window 2's segment 1
     assert (rec_t["adaptive_updates"], rec_f["adaptive_updates"]) == (2, 1)
