@@ -18,7 +18,8 @@ print ``n/a``; ``packed 4x16`` is 4 independent runs of 16 slots each in one
 process batch (:mod:`geonav.policy.batched.packed`, each run its own parameters, Adam and
 per-run batch of 16), to read beside ``B=16`` (one such run) and ``B=64`` (one run of
 the same process batch). In the meta-training rows (ISAR base
-second and first order, A3C base, SAVN base; :mod:`geonav.policy.batched.meta`) B is the
+second and first order, A3C base, SAVN base; ``meta-isar2-cnn`` and ``meta-a3c-cnn``
+with per-task copies of the trainable CNN; :mod:`geonav.policy.batched.meta`) B is the
 meta-batch, every task the bench task, and ``async`` is
 :class:`~geonav.policy.meta.MetaTrainer` in one process; the ISAR and A3C bases stop at
 B = 64 (``META_MAX_BATCH``). Last, the memory of the observation tables of the whole-scene
@@ -107,6 +108,9 @@ def configs(kind: str):
         "meta-isar1": ("meta-isar", frozen, ISARConfig(**common, second_order=False), 70),
         "meta-a3c": ("meta-a3c", frozen, A3CConfig(**common), 70),
         "meta-savn": ("meta-savn", frozen, SAVNConfig(**common), 70),
+        "meta-isar2-cnn": ("meta-isar", replace(frozen, encoder="cnn"),
+                           ISARConfig(**common, second_order=True), 70),
+        "meta-a3c-cnn": ("meta-a3c", replace(frozen, encoder="cnn"), A3CConfig(**common), 70),
     }[kind]
 
 
@@ -218,6 +222,7 @@ def main() -> None:
                                                       "savn", "isar2-cnn", "savn-cnn",
                                                       "meta-isar2", "meta-isar1",
                                                       "meta-a3c", "meta-savn",
+                                                      "meta-isar2-cnn", "meta-a3c-cnn",
                                                       "curriculum-stage"]
     batches = [int(b) for b in args.batches.split(",")]
     head = f"{'row':17s} {'async wall':>10s} {'/cpu-s':>8s}"

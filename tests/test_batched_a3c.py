@@ -130,3 +130,86 @@ def test_finite_losses_pass_the_check():
 
     check_finite_losses({"episode": 3, "policy_loss": -0.2, "value_loss": 1e30, "entropy": 1.3})
     check_finite_losses({"episode": 3})  # records without losses (nothing to judge)
+
+
+def prev_view_case(encoder, cells=5):
+    """A network with the extra input slot, the tiny lattice and its views at 90 m."""
+    from dataclasses import replace
+
+    from geonav.policy.teacher import PrevViewSpec
+
+    px = 20 if encoder == "cnn" else 32
+    net = replace(tiny_net(encoder, px, size=16), prev_view_input=True)
+    factory = tiny_env_factory(cells=cells, max_steps=12, obs_size_px=px)
+    spec = PrevViewSpec(tiny_env_factory(cells=cells, max_steps=12, alt_m=90.0,
+                                         obs_size_px=px), 90.0)
+    return net, factory, spec
+
+
+@pytest.mark.parametrize("encoder", ["random", "cnn"])
+def test_b1_previous_view_input_equals_reference(float64_default, encoder):
+    """The curriculum's option B on batched A3C, B = 1, float64, 1e-10. The async A3C
+    worker has no extra input; the reference is the async ISAR worker with windows of one
+    t_max-step segment (K = 1: no inner step, one Adam step per segment, the A3C worker's
+    update; checked here without the input too), over every rollout of its first episode.
+    Zero-filling the slot instead changes the gradients (the input matters)."""
+    from geonav.policy.isar import ISARTrainer
+    from geonav.policy.meta_config import ISARConfig
+
+    net, factory, spec = prev_view_case(encoder)
+    cfg = A3CConfig(episodes=1, workers=0, t_max=3, seed=4)
+    ref_cfg = ISARConfig(episodes=1, workers=0, n_steps=3, k_segments=1, seed=4)
+    names = None
+    grads = {}
+    for prev in (spec, None):
+        ref = ISARTrainer(factory, net, ref_cfg, prev_view=prev, tensorboard=False)
+        worker = ref.inline_worker()
+        ref_grads, got = [], []
+        worker.on_gradients = lambda gs, out=ref_grads: out.append([g.clone() for g in gs])
+        rec = worker.run_episode(1)
+        n = rec["length"] // cfg.t_max  # the rollouts inside the first episode
+        assert n >= 2
+        bat = BatchedA3CTrainer(factory, net, cfg, prev_view=prev, batch=1,
+                                tensorboard=False)
+        bat._setup()
+        bat.on_gradients = lambda gs, out=got: out.append([g.clone() for g in gs])
+        for _ in range(n):
+            bat.update()
+        names = [k for k, _ in ref.model.named_parameters()]
+        assert got[0][0].dtype == torch.float64
+        for a, b in zip(ref_grads[:n], got, strict=True):
+            assert_grads_close(names, a, b, 1e-10, 1e-10)
+        grads[prev is None] = got
+    i = names.index("prev_embed.weight")
+    assert float((grads[False][0][i] - grads[True][0][i]).abs().max()) > 1e-6
+
+
+@pytest.mark.parametrize("encoder", ["random", "cnn"])
+def test_previous_view_input_at_b3_equals_batched_isar_with_one_segment(float64_default,
+                                                                         encoder):
+    """B = 3 slots whose episodes end at different steps (new ones start mid-rollout):
+    batched A3C with the input equals batched ISAR with K = 1 (whose input is tested
+    against the async worker) update by update, float64, 1e-10."""
+    from geonav.policy.batched.isar import BatchedISARTrainer
+    from geonav.policy.meta_config import ISARConfig
+
+    net, factory, spec = prev_view_case(encoder, cells=3)
+    a3c = BatchedA3CTrainer(factory, net, A3CConfig(episodes=9, workers=0, t_max=5, seed=2),
+                            prev_view=spec, batch=3, tensorboard=False)
+    isar = BatchedISARTrainer(factory, net, ISARConfig(episodes=9, workers=0, n_steps=5,
+                                                       k_segments=1, seed=2),
+                              prev_view=spec, batch=3, tensorboard=False)
+    seen = {}
+    for name, t in (("a3c", a3c), ("isar", isar)):
+        t._setup()
+        seen[name] = []
+        t.on_gradients = lambda gs, out=seen[name]: out.append([g.clone() for g in gs])
+        ends = []
+        for _ in range(6):
+            ends += [(f["slot"], f["length"]) for f in t.update()[0]]
+        seen[name + "-ends"] = ends
+    assert seen["a3c-ends"] == seen["isar-ends"]
+    assert len({length for _, length in seen["a3c-ends"]}) > 1  # out of step
+    names = [k for k, _ in a3c.model.named_parameters()]
+    for a, b in zip(seen["isar"], seen["a3c"], strict=True):
+        assert_grads_close(names, a, b, 1e-10, 1e-10)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -92,6 +93,35 @@ def test_meta_isar_with_the_trainable_cnn_runs_batched():
                                                     episodes_per_task=2),
                            tensorboard=False)
     assert t.engine_choice.engine == "batched"
+
+
+def test_no_combination_falls_back_to_the_async_engine(caplog):
+    """The last gaps are closed: ISAR without the partial-window flush (train and
+    meta-train) and the previous-altitude view input of A3C and PPO resolve to the batched
+    engine, without a warning; the async A3C worker, which has no extra input, refuses it."""
+    from geonav.errors import ConfigError
+    from geonav.policy.batched.isar import BatchedISARTrainer
+    from geonav.policy.batched.meta import BatchedMetaISAR
+    from geonav.policy.batched.ppo import BatchedPPOTrainer
+    from geonav.policy.batched.trainer import BatchedA3CTrainer
+    from geonav.policy.engine import build_meta_trainer, resolve
+    from geonav.policy.meta_config import ISARConfig, MetaConfig
+    from geonav.policy.testing import tiny_env_factory, tiny_net
+
+    no_flush = ISARConfig(flush_partial_window=False)
+    for algo, cfg, prev, cls in (("isar", no_flush, False, BatchedISARTrainer),
+                                 ("isar", no_flush, True, BatchedISARTrainer),
+                                 ("a3c", None, True, BatchedA3CTrainer),
+                                 ("ppo", None, True, BatchedPPOTrainer)):
+        choice = resolve(algo, "batched", None, cfg, prev_view=prev)
+        assert (choice.cls, choice.engine, choice.reason) == (cls, "batched", None)
+    t = build_meta_trainer("isar", "batched", tiny_env_factory(), tiny_net(),
+                           replace(no_flush, lr_warmup=10), MetaConfig(episodes=1, workers=0),
+                           tensorboard=False)
+    assert isinstance(t, BatchedMetaISAR) and t.engine_choice.reason is None
+    assert not [r for r in caplog.records if "engine 'async'" in r.getMessage()]
+    with pytest.raises(ConfigError, match="batched engine only"):
+        resolve("a3c", "async", None, None, prev_view=True)
 
 
 def test_resume_from_an_earlier_checkpoint_drops_the_later_rows(scene_files, tmp_path):

@@ -38,9 +38,59 @@ def test_b1_first_window_equals_reference_worker(second_order, encoder):
 
 def test_refuses_what_it_does_not_implement():
     factory = tiny_env_factory()
-    with pytest.raises(ConfigError, match="flush_partial_window"):
-        BatchedISARTrainer(factory, tiny_net(), ISARConfig(episodes=1,
-                                                           flush_partial_window=False))
+    with pytest.raises(ConfigError, match="frozen encoder"):
+        BatchedISARTrainer(factory, tiny_net("cnn"), ISARConfig(episodes=1, base_loss="ppo"))
+
+
+def episode_and_updates_grads(ref, bat, updates):
+    """The reference worker's gradients over its first episode (one list per adaptive
+    update), its record, and the batched trainer's first ``updates`` updates' gradients
+    and finished episodes."""
+    worker = ref.inline_worker()
+    ref_grads, got, finals = [], [], []
+    worker.on_gradients = lambda gs: ref_grads.append([g.clone() for g in gs])
+    rec = worker.run_episode(1)
+    bat._setup()
+    bat.on_gradients = lambda gs: got.append([g.clone() for g in gs])
+    for _ in range(updates):
+        finals += bat.update()[0]
+    return ref_grads, rec, got, finals
+
+
+@pytest.mark.parametrize("encoder", ["random", "cnn", "random-kl"])
+def test_b1_without_the_partial_window_flush_equals_reference(float64_default, encoder,
+                                                              tmp_path):
+    """flush_partial_window = false: the first episode (12 steps; windows of 4 segments
+    of 2 steps) has one full window, then ends in segment 1 of the next. The reference
+    takes the full window's update and drops the partial one; the batched window that
+    holds the partial one (and the next episode's first steps) drops the finished
+    episode's steps: its gradient plus the reference's flush gradient P is the flushing
+    trainer's (float64, 1e-10), and P is not 0 (the flag matters). -kl: with the
+    curriculum's KL prior, whose terms are dropped with the steps."""
+    factory = tiny_env_factory(cells=5, max_steps=12)
+    net = tiny_net(encoder.removesuffix("-kl"), 32, size=16)
+    kw = {"teacher": kl_teacher_spec(net, tmp_path)} if encoder.endswith("-kl") else {}
+    cfg = ISARConfig(episodes=2, workers=0, n_steps=2, k_segments=4, alpha=0.5, seed=4)
+    names = [n for n, _ in ISARTrainer(factory, net, cfg, tensorboard=False)
+             .model.named_parameters()]
+    runs = {}
+    for flush in (True, False):
+        c = replace(cfg, flush_partial_window=flush)
+        runs[flush] = episode_and_updates_grads(
+            ISARTrainer(factory, net, c, tensorboard=False, **kw),
+            BatchedISARTrainer(factory, net, c, batch=1, tensorboard=False, **kw), 2)
+    (ref_t, rec_t, bat_t, fin_t), (ref_f, rec_f, bat_f, fin_f) = runs[True], runs[False]
+    assert rec_f["length"] == rec_t["length"] == 12  # truncated in window 2's segment 1
+    assert (rec_t["adaptive_updates"], rec_f["adaptive_updates"]) == (2, 1)
+    assert len(ref_t) == 2 and len(ref_f) == 1
+    assert [f["adaptive_updates"] for f in fin_t[:1] + fin_f[:1]] == [2, 1]
+    assert bat_f[0][0].dtype == torch.float64
+    for ref, bat in ((ref_f, bat_f), (ref_t, bat_t)):
+        assert_grads_close(names, ref[0], bat[0], 1e-10, 1e-10)  # the full window
+    flushed = ref_t[1]  # P, the reference's flush of the partial window
+    assert max(float(p.abs().max()) for p in flushed) > 1e-3
+    assert_grads_close(names, bat_t[1], [a + p for a, p in zip(bat_f[1], flushed, strict=True)],
+                       1e-10, 1e-10)
 
 
 @pytest.mark.slow
@@ -134,3 +184,24 @@ def test_b1_first_window_with_previous_view_input_and_cnn_equals_reference(float
     names = [n for n, _ in ref.model.named_parameters()]
     assert_grads_close(names, ref_grads, got, 1e-10, 1e-10)
     assert float(got[names.index("prev_embed.weight")].abs().max()) > 0  # the views reach it
+
+
+@pytest.mark.parametrize("flush", [True, False])
+def test_records_count_the_windows_of_each_episode(flush):
+    """B = 1 on the global clock (windows of W = 4 steps): an episode's adaptive_updates
+    is the number of windows its steps fall in (one ending exactly at a window's end
+    gives the next episode nothing of that window), less the last one when it ends before
+    that window's last segment and the partial window is not flushed."""
+    factory = tiny_env_factory(cells=3, max_steps=6)
+    cfg = ISARConfig(episodes=12, n_steps=2, k_segments=2, seed=1, flush_partial_window=flush)
+    res = BatchedISARTrainer(factory, tiny_net("random", 32, size=16), cfg, batch=1,
+                             tensorboard=False).train()
+    start, seen = 0, set()
+    for r in res.records:
+        end = start + r["length"]  # steps [start, end) of the global clock
+        windows = (end - 1) // 4 - start // 4 + 1
+        partial = (end - 1) % 4 < 2 and not flush  # ended in the window's first segment
+        assert r["adaptive_updates"] == windows - partial, (start, end, r)
+        seen.add((end % 4 == 0, partial))
+        start = end
+    assert (True, False) in seen and (False, not flush) in seen  # both cases met

@@ -1,5 +1,8 @@
 """Batched PPO: the recurrent recompute matches acting, and it learns the tiny task."""
 
+from dataclasses import replace
+
+import pytest
 import torch
 from batched_helpers import greedy_sr, random_sr
 
@@ -7,21 +10,38 @@ from geonav.policy.batched.ppo import BatchedPPOTrainer, PPOConfig
 from geonav.policy.testing import tiny_env_factory, tiny_net
 
 
-def test_recompute_of_minibatch_sequences_matches_acting():
+@pytest.mark.parametrize("case", ["plain", "prev", "prev-cnn"])
+def test_recompute_of_minibatch_sequences_matches_acting(case):
     """Whole-sequence minibatches over slots, recomputed from their stored start states
-    across episode ends, give the acting log-probabilities and values (ratio = 1)."""
-    factory = tiny_env_factory(max_steps=5)
-    t = BatchedPPOTrainer(factory, tiny_net("random", 32, size=16), PPOConfig(episodes=10),
-                          batch=6, tensorboard=False)
-    t._setup()
-    t.collect(7, keep_policy=True)  # slots are now mid-episode with non-zero states
-    ro, finals = t.collect(12, keep_policy=True)
-    assert finals and ro.starts[1:].any()  # episodes end and begin inside the rollout
-    slots = torch.tensor([4, 1, 3])
-    logits, values = t.recompute(ro, slots)
-    logp = torch.log_softmax(logits, -1).gather(-1, ro.actions[:, slots, None])[..., 0]
-    torch.testing.assert_close(logp, ro.logprobs[:, slots], atol=1e-5, rtol=0)
-    torch.testing.assert_close(values, ro.values[:, slots], atol=1e-5, rtol=0)
+    across episode ends, give the acting log-probabilities and values (ratio = 1). prev:
+    the previous-altitude view input (curriculum option B, as batched A3C feeds it: while
+    acting and in the recompute), which moves the values from the zero-filled slot's."""
+    from geonav.policy.teacher import PrevViewSpec
+
+    px = 20 if case.endswith("cnn") else 32
+    net = replace(tiny_net("cnn" if case.endswith("cnn") else "random", px, size=16),
+                  prev_view_input=case != "plain")
+    factory = tiny_env_factory(max_steps=5, obs_size_px=px)
+    spec = PrevViewSpec(tiny_env_factory(max_steps=5, alt_m=90.0, obs_size_px=px), 90.0) \
+        if case != "plain" else None
+    rollouts = {}
+    for prev in ([spec, None] if spec is not None else [None]):
+        t = BatchedPPOTrainer(factory, net, PPOConfig(episodes=10), prev_view=prev, batch=6,
+                              tensorboard=False)
+        t._setup()
+        t.collect(7, keep_policy=True)  # slots are now mid-episode with non-zero states
+        ro, finals = t.collect(12, keep_policy=True)
+        assert finals and ro.starts[1:].any()  # episodes end and begin inside the rollout
+        slots = torch.tensor([4, 1, 3])
+        logits, values = t.recompute(ro, slots)
+        logp = torch.log_softmax(logits, -1).gather(-1, ro.actions[:, slots, None])[..., 0]
+        torch.testing.assert_close(logp, ro.logprobs[:, slots], atol=1e-5, rtol=0)
+        torch.testing.assert_close(values, ro.values[:, slots], atol=1e-5, rtol=0)
+        rollouts[prev is None] = ro, t
+    if spec is not None:
+        (with_prev, t), (zero, _) = rollouts[False], rollouts[True]
+        assert float((with_prev.values[0] - zero.values[0]).abs().max()) > 1e-6
+        assert t.resolved_config()["teacher"] == {"kind": "input", "prev_alt_m": 90.0}
 
 
 def test_learns_tiny_task():

@@ -206,6 +206,19 @@ def test_savn_and_per_step_isar_stages_take_the_previous_view(factory, tmp_path,
     assert [s.prev_view_alt_m for s in res.stages] == [None, 75.0]
 
 
+def test_batched_a3c_stage_takes_the_previous_view(factory, tmp_path):
+    from geonav.policy.curriculum import run_curriculum
+
+    res = run_curriculum(factory, None, "a3c", A3CConfig(workers=0, seed=0, t_max=5),
+                         CurriculumConfig(levels_m=(75.0, 45.0), stage_episodes=2,
+                                          max_steps=12, teacher="input"),
+                         out_dir=tmp_path, criterion=HARD, net_cfg=slot_net(), batch=2)
+    assert [s.prev_view_alt_m for s in res.stages] == [None, 75.0]
+    cfg1 = json.loads((tmp_path / "stage_1_45m" / "config.json").read_text())
+    assert cfg1["engine"]["name"] == "batched"
+    assert cfg1["teacher"] == {"kind": "input", "prev_alt_m": 75.0}
+
+
 def test_input_teacher_refuses_a_network_without_the_slot(factory, tmp_path):
     from geonav.policy.curriculum import run_curriculum
 
@@ -220,9 +233,10 @@ def test_input_teacher_refuses_a_network_without_the_slot(factory, tmp_path):
     with pytest.raises(ConfigError, match="prev_view_input"):
         run_curriculum(factory, None, "isar", ISARConfig(workers=0), cur,
                        out_dir=tmp_path / "c2", criterion=HARD, net_cfg=tiny_net())
-    with pytest.raises(ConfigError, match="isar and savn"):
+    with pytest.raises(ConfigError, match="a3c on engine = 'batched'"):
         run_curriculum(factory, None, "a3c", A3CConfig(workers=0), cur,
-                       out_dir=tmp_path / "c3", criterion=HARD, net_cfg=slot_net())
+                       out_dir=tmp_path / "c3", criterion=HARD, net_cfg=slot_net(),
+                       engine="async")
     from geonav.policy.isar import ISARTrainer
     from geonav.policy.teacher import PrevViewSpec
 

@@ -95,13 +95,16 @@ def trainer_class(algo: str) -> type:
     return classes[algo]
 
 
-def _check_input_teacher(algo: str, init: str | None, net_cfg: NetConfig | None) -> None:
-    """teacher='input' needs ISAR or SAVN and a network with the extra slot from stage 0."""
+def _check_input_teacher(algo: str, init: str | None, net_cfg: NetConfig | None,
+                         engine: str = "batched") -> None:
+    """teacher='input' needs ISAR or SAVN (or A3C on the batched engine) and a network with
+    the extra slot from stage 0."""
     from geonav.policy.checkpoint import load_checkpoint
 
-    if algo not in ("isar", "savn"):
+    if algo not in ("isar", "savn") and not (algo == "a3c" and engine == "batched"):
         raise ConfigError(f"curriculum teacher='input' (the extra input slot) is implemented "
-                          f"for isar and savn, not {algo!r}")
+                          f"for isar and savn on both engines and for a3c on engine = "
+                          f"'batched', not {algo!r} on engine {engine!r}")
     fix = ("meta-train (or train) the starting policy with prev_view_input = true in the "
            "[net] table (geonav meta-train/train --prev-view-input), so the slot exists "
            "from stage 0")
@@ -155,7 +158,7 @@ def run_curriculum(env_factory: Any, init: str | None, algo: str, base_cfg: A3CC
                       "hold": criterion.hold}, "base": to_dict(base_cfg)}
     trainer_class(algo)  # validates algo
     if cfg.teacher == "input":
-        _check_input_teacher(algo, init, net_cfg)
+        _check_input_teacher(algo, init, net_cfg, engine)
     prev_ckpt, prev_alt = init, cfg.first_teacher_alt_m
     model = None
     result = CurriculumResult(None)

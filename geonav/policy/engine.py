@@ -6,12 +6,13 @@ one process; ``engine = "async"`` is the per-episode, multi-process trainer of
 the paper-faithful asynchronous form and the reference the batched learners are tested
 against. Both write the same run folders, checkpoints and metrics.
 
-Where the batched engine does not implement a combination (ISAR without the
-partial-window flush; the previous-altitude view input outside ISAR and SAVN),
-:func:`resolve` (or :func:`build_meta_trainer`) falls
-back to the async trainer, logs a warning and says so in the returned reason, which
-the trainers record in config.json.
-PPO, and ISAR with ``base_loss = "ppo"``, exist on the batched engine only.
+The batched engine implements every combination the async one does (the last gaps,
+ISAR's ``flush_partial_window = false`` and the previous-altitude view input of A3C, are
+closed), so :func:`resolve` (and :func:`build_meta_trainer`) no longer falls back;
+:func:`_fallback_reason` stays the one place a future gap would be named: the trainers
+would log it as a warning and record it in config.json.
+PPO, ISAR with ``base_loss = "ppo"`` and the previous-altitude view input of A3C exist
+on the batched engine only.
 """
 
 from __future__ import annotations
@@ -41,11 +42,7 @@ class EngineChoice:
 
 def _fallback_reason(algo: str, net_cfg: Any, cfg: Any, teacher: bool, prev_view: bool
                      ) -> str | None:
-    if prev_view and algo not in ("isar", "savn"):
-        return f"the previous-altitude view input is implemented for isar and savn, not {algo}"
-    if algo in ("isar", "savn"):
-        if cfg is not None and not getattr(cfg, "flush_partial_window", True):
-            return "flush_partial_window = false is implemented on the async engine only"
+    """Why the batched engine cannot run this combination, or None (it runs them all)."""
     return None
 
 
@@ -83,6 +80,10 @@ def resolve(algo: str, engine: str = "batched", net_cfg: Any = None, cfg: Any = 
         from geonav.policy.meta_config import PPO_BASE_ASYNC
 
         raise ConfigError(PPO_BASE_ASYNC)
+    elif prev_view and algo == "a3c":
+        raise ConfigError("the previous-altitude view input (curriculum teacher = 'input') "
+                          "for a3c runs on the batched engine only (the async A3C worker "
+                          "has no extra input); use engine = 'batched', or isar or savn")
     else:
         reason = None
     from geonav.policy.a3c import A3CTrainer
@@ -121,8 +122,8 @@ def build_meta_trainer(algo: str, engine: str, env_factory: Any, net_cfg: Any, b
                        meta_cfg: Any, *, batch: int | None = None, device: str | None = None,
                        **kwargs: Any) -> Any:
     """Meta-training on the batched engine where it is implemented (SAVN, ISAR and A3C
-    bases, any E, frozen encoder or trainable CNN: :mod:`geonav.policy.batched.meta`;
-    not ``flush_partial_window = false``), else
+    bases, any E, frozen encoder or trainable CNN, ``flush_partial_window`` and
+    ``lr_warmup``: :mod:`geonav.policy.batched.meta`), else
     :class:`~geonav.policy.meta.MetaTrainer` (async, with a warning when the batched engine
     was asked for). ``batch`` is unused: B is the meta-batch."""
     if engine not in ENGINES:

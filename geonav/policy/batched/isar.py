@@ -17,7 +17,10 @@ lock-step with the graph kept (``factored_step``), on a global clock:
 * a slot whose episode ends mid-window starts a new episode at once with theta_s = phi
   (its factors cleared) and h = 0; the finished episode's losses stay in the window
   (the partial window is flushed at the window end: phi has not changed since they were
-  taken, so this is the same gradient as a flush at done).
+  taken, so this is the same gradient as a flush at done). With
+  ``flush_partial_window = false`` an episode that ends before the window's last segment
+  has its steps in the window dropped from the window's loss instead, as the reference
+  worker empties its partial window at done without an adaptive update.
 
 With B = 1 the first episode follows Algorithm 1 exactly; later episodes (and every
 episode at B > 1) begin wherever the global clock stands, so their first segment and
@@ -65,9 +68,6 @@ class BatchedISARTrainer(BatchedTrainer):
         self.teacher_spec = teacher
         self.prev_view_spec = prev_view
         cfg = cfg if cfg is not None else ISARConfig()
-        if not cfg.flush_partial_window:
-            raise ConfigError("flush_partial_window = false is implemented on engine = "
-                              "'async' only")
         super().__init__(env_factory, net_cfg, cfg, **kwargs)
         if cfg.base_loss == "ppo" and self.frozen is None:
             raise ConfigError("ISAR with base_loss = 'ppo' needs a frozen encoder (encoder = "
@@ -100,10 +100,11 @@ class BatchedISARTrainer(BatchedTrainer):
 
     def segment(self, params: Any, adapted: Adapted, state: Any, keep: bool = False
                 ) -> tuple[torch.Tensor, list[LossTerms], LossTerms, Recorder, Adapted, Any,
-                           list[dict[str, Any]], SegmentData | None]:
+                           list[dict[str, Any]], SegmentData]:
         """N lock-step steps with the graph: (all-steps loss, its terms per run,
         current-episode loss, recorder, adapted weights (finished slots reset to phi),
-        state, finished episodes, and with ``keep`` what a replay of the segment needs)."""
+        state, finished episodes, the segment's data; with ``keep`` it holds what a replay
+        of the segment needs)."""
         cfg, e, dev = self.cfg, self.net_cfg.embed_dim, self.device
         n, b = cfg.n_steps, self.batch
         ppo = cfg.base_loss == "ppo"
@@ -115,6 +116,7 @@ class BatchedISARTrainer(BatchedTrainer):
         done_at: list[torch.Tensor | None] = []
         rewards = np.zeros((n, b))
         ends = np.zeros((n, b), bool)
+        episodes = np.zeros((n, b), np.int64)
         end_values = np.zeros((n, b)) if cfg.loss.bootstrap_on_truncation else None
         current = torch.ones(n, b, dtype=values_dtype(self), device=dev)
         finals: list[dict[str, Any]] = []
@@ -134,6 +136,7 @@ class BatchedISARTrainer(BatchedTrainer):
                                                 tgt_f, state, adapted, rec, self.fresh, vi, ti,
                                                 self.slot_prev(params, adapted, vi, rec))
             a = sample_actions(logit, self.rng).to(dev)
+            episodes[t] = self.slot_episode
             res = self.env_step(a)
             done_at.append(None)
             if end_values is not None and res.truncated.any():
@@ -175,9 +178,10 @@ class BatchedISARTrainer(BatchedTrainer):
             torch.log_softmax(lg.detach(), -1).gather(-1, acts.unsqueeze(-1)).squeeze(-1)
             if ppo else None,
             torch.stack(tlogp).to(lg.dtype) if tlogp else None,
-            torch.tensor(lams, dtype=lg.dtype, device=dev) if tlogp else None)
+            torch.tensor(lams, dtype=lg.dtype, device=dev) if tlogp else None,
+            episodes=episodes, logits=lg, values=vs)
         total, runs, mine = self.segment_loss(lg, vs, data)
-        return total, runs, mine, rec, adapted, state, finals, data if keep else None
+        return total, runs, mine, rec, adapted, state, finals, data
 
     def segment_loss(self, logits: torch.Tensor, values: torch.Tensor, d: SegmentData
                      ) -> tuple[torch.Tensor, list[LossTerms], LossTerms]:
@@ -229,9 +233,14 @@ class BatchedISARTrainer(BatchedTrainer):
         kept: list[SegmentData] = []
         replays = cfg.ppo_epochs - 1 if cfg.base_loss == "ppo" else 0
         sums = np.zeros((len(self.run_slices()), 3))  # policy, value, entropy per run
+        dropped: list[tuple[int, int]] = []
         for k in range(cfg.k_segments):
             total, runs, mine, rec, adapted, state, fin, data = self.segment(
                 params, adapted, state, keep=replays > 0)
+            if not cfg.flush_partial_window and k < cfg.k_segments - 1:
+                for f in fin:  # ended in a partial window: its losses leave the window
+                    f["adaptive_updates"] -= 1
+                    dropped.append((f["slot"], f["started_as"]))
             finals += fin
             window.append(total)
             sums += [[float(r.policy.detach()), float(r.value.detach()),
@@ -241,20 +250,47 @@ class BatchedISARTrainer(BatchedTrainer):
                 adapted = rec.inner_factors(mine.total, adapted, cfg.alpha,
                                             create_graph=cfg.second_order, weights=live)
                 self.inner += (~self.fresh).cpu().numpy()
-                if data is not None:
-                    data.live = live
-            if data is not None:
-                kept.append(data)
+                data.live = live
+            kept.append(data)
+        if dropped:
+            window = self.drop_episodes(kept, window, dropped)
         self.step_optimizer(torch.stack(window).sum() / self.run_batch)
         for _ in range(replays):
             sums = self.replay_window(state0, kept)
-        self.adapt += 1
+        # a slot whose episode ended at the window's last step has no step of its new one
+        # in this window: the update is not the new episode's
+        self.adapt += (~self.fresh).cpu().numpy()
         self.state = detach_state(state)
         b = float(self.run_batch)
         stats = [loss_stats(LossTerms(torch.tensor(0.0), torch.tensor(pl / b),
                                       torch.tensor(vl / b), torch.tensor(ent / b)),
                             cfg.n_steps * cfg.k_segments) for pl, vl, ent in sums]
         return finals, stats[0] if len(stats) == 1 else stats
+
+    def drop_episodes(self, segments: list[SegmentData], window: list[torch.Tensor],
+                      dropped: list[tuple[int, int]]) -> list[torch.Tensor]:
+        """``flush_partial_window = false``: the window's segment losses without the steps
+        of the ``dropped`` (slot, episode number) episodes, those that ended before the
+        window's last segment (the reference worker empties such a partial window at done,
+        with no adaptive update). The inner steps they took stay as taken, as there. The
+        segments' step weights are narrowed in place, so PPO's later passes drop them too."""
+        out = []
+        for d, total in zip(segments, window, strict=True):
+            assert d.episodes is not None and d.logits is not None and d.values is not None
+            gone = np.zeros(d.episodes.shape, bool)
+            for s, ep in dropped:
+                gone[:, s] |= d.episodes[:, s] == ep
+            if not gone.any():
+                out.append(total)
+                continue
+            keep = torch.from_numpy(~gone).to(self.device, d.values.dtype)
+            weights: list[torch.Tensor | None] = [keep if w is None else w * keep
+                                                  for w in d.weights[:-1]]
+            d.weights = [*weights, d.weights[-1]]
+            if d.kl_weights is not None:
+                d.kl_weights = d.kl_weights * keep
+            out.append(self.segment_loss(d.logits, d.values, d)[0])
+        return out
 
     def replay_window(self, state: Any, kept: list[SegmentData]) -> np.ndarray:
         """One more PPO pass over a window: its K segments recomputed from the window's
@@ -309,6 +345,12 @@ class SegmentData:
     """(N, B) the KL prior's lambda per step."""
     live: torch.Tensor | None = None
     """(B,) the inner step's slot weights after this segment (None: no inner step)."""
+    episodes: np.ndarray | None = None
+    """(N, B) the number of the episode each step belongs to (slot_episode)."""
+    logits: torch.Tensor | None = None
+    """(N, B, A) the acting pass's logits, with the graph (a window-end reweighting)."""
+    values: torch.Tensor | None = None
+    """(N, B) the acting pass's values, with the graph (ditto)."""
 
 
 def segment_advantages(values: torch.Tensor, rewards: np.ndarray, ends: np.ndarray,

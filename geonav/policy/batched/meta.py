@@ -72,10 +72,14 @@ With a frozen encoder the ISAR and A3C bases' per-slot weights are stored transp
 All slots start together with h = 0, so their segments and windows fall on the same
 global clock as each reference episode's own; a slot whose episode ends waits (its later
 steps are masked out, its partial window is flushed at the window end, where its phi^i
-has not changed since, so this is the reference's flush at done) until every slot has
-finished. ``tests/test_batched_meta.py`` checks the task gradients and the meta update
-of B = 1 and B = 3 tasks (E = 1 and 2; frozen encoder and trainable CNN) against the
-reference's in float64 on forced trajectories.
+has not changed since, so this is the reference's flush at done; with
+``flush_partial_window = false`` that slot's partial window is dropped instead, no task
+gradient and no Adam step, as the reference worker empties it) until every slot has
+finished. ``lr_warmup`` ramps each slot's in-task rate from its own step count, as the
+reference's fresh per-visit Adam does. ``tests/test_batched_meta.py`` checks the task
+gradients and the meta update of B = 1 and B = 3 tasks (E = 1 and 2; frozen encoder and
+trainable CNN; without the flush; with the warm-up) against the reference's in float64 on
+forced trajectories.
 """
 
 from __future__ import annotations
@@ -244,7 +248,7 @@ class MetaRun:
                                   device=p.device).requires_grad_()
                    for n, p in psi.items()}
             opt = SlotAdam(list(phi.values()), cfg.lr, cfg.adam_betas, cfg.adam_eps,
-                           cfg.amsgrad)
+                           cfg.amsgrad, cfg.lr_warmup)
             self._slots = (phi, opt, [torch.zeros_like(x) for x in phi.values()])
         phi, opt, task_grads = self._slots
         with torch.no_grad():
@@ -408,12 +412,18 @@ class SlotAdam:
     once per window on every live slot's views of every parameter (slot s's rows of the
     stacked tensors, with slot s's step count): one pass over the memory, where the
     elementwise form took about a dozen and 40 % of a meta-iteration.
+
+    ``warmup`` > 0 ramps each slot's rate as :func:`~geonav.policy.optim.warm_up_lr` ramps
+    the reference's per-visit Adam (``lr_warmup``): slot s's k-th step runs at
+    lr * min(1, k / warmup), k read from its own step count, so slots that have stepped
+    different numbers of times step at their own rates (one kernel call per distinct rate).
     """
 
     def __init__(self, params: list[torch.Tensor], lr: float, betas: tuple[float, float],
-                 eps: float, amsgrad: bool) -> None:
+                 eps: float, amsgrad: bool, warmup: int = 0) -> None:
         self.params, self.lr, self.betas, self.eps, self.amsgrad = params, lr, betas, eps, \
             amsgrad
+        self.warmup = int(warmup)
         b = params[0].shape[0]
         # one 0-dim step tensor per slot, float32 as torch's fused Adam keeps its steps
         self.steps = [torch.zeros((), dtype=torch.float32, device=params[0].device)
@@ -436,14 +446,11 @@ class SlotAdam:
     def step(self, grads: list[torch.Tensor], slots: list[int]) -> None:
         """One Adam step of the slots ``slots`` with ``grads`` (len(slots), ...), row i
         slot ``slots[i]``'s (contiguous, as the parameters)."""
-        params: list[torch.Tensor] = []
-        gs: list[torch.Tensor] = []
-        ms: list[torch.Tensor] = []
-        vs: list[torch.Tensor] = []
-        vm: list[torch.Tensor] = []
-        steps: list[torch.Tensor] = []
+        groups: dict[float, tuple[list[torch.Tensor], ...]] = {}
         for i, s in enumerate(slots):
+            lr = self.slot_lr(s)  # from the steps taken before this one, as warm_up_lr
             self.steps[s].add_(1.0)
+            params, gs, ms, vs, vm, steps = groups.setdefault(lr, ([], [], [], [], [], []))
             p, m, v, w = self._views[s]
             params += p
             gs += [g[i] for g in grads]
@@ -451,12 +458,19 @@ class SlotAdam:
             vs += v
             vm += w
             steps += [self.steps[s]] * len(p)
-        if not params:
-            return
         b1, b2 = self.betas
-        torch._fused_adam_(params, gs, ms, vs, vm, steps, amsgrad=self.amsgrad, lr=self.lr,
-                           beta1=b1, beta2=b2, weight_decay=0.0, eps=self.eps,
-                           maximize=False, grad_scale=None, found_inf=None)
+        for lr, (params, gs, ms, vs, vm, steps) in groups.items():
+            torch._fused_adam_(params, gs, ms, vs, vm, steps, amsgrad=self.amsgrad, lr=lr,
+                               beta1=b1, beta2=b2, weight_decay=0.0, eps=self.eps,
+                               maximize=False, grad_scale=None, found_inf=None)
+
+    def slot_lr(self, s: int) -> float:
+        """The rate of slot ``s``'s next step: ``lr * min(1, (n + 1) / warmup)`` with n its
+        steps so far (:func:`~geonav.policy.optim.warm_up_lr`'s ramp), or ``lr``."""
+        if self.warmup <= 0:
+            return self.lr
+        n = int(self.steps[s].item())
+        return self.lr * min(1.0, (n + 1) / self.warmup)
 
 
 def psi_layout(g: torch.Tensor) -> torch.Tensor:
@@ -489,9 +503,6 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
 
     def __init__(self, env_factory: Any, net_cfg: Any, base_cfg: Any,
                  meta_cfg: MetaConfig | None = None, **kwargs: Any) -> None:
-        if not getattr(base_cfg, "flush_partial_window", True):
-            raise ConfigError("flush_partial_window = false is implemented on engine = "
-                              "'async' only")
         check_a3c_base(base_cfg, PPO_BASE_META)
         super().__init__(env_factory, net_cfg, base_cfg, meta_cfg, **kwargs)
         # the trainable CNN: phi^i run-stacked in the model's layout, autograd gradients
@@ -673,6 +684,7 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
         psi = self.params()
         k = self.schedule()[1]
         second_order = bool(getattr(cfg, "second_order", False)) and k > 1
+        flush = bool(getattr(cfg, "flush_partial_window", True))
         dtype = values_dtype(self)
         alive = alive.copy()
         z = torch.zeros(b, self.net_cfg.lstm_size, dtype=dtype, device=dev)
@@ -712,6 +724,7 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
             back: list[Any] = []
             views = None if cnn else self.view_bases(phi_w, rows)
             adapt += alive
+            dropped = np.zeros(b, bool)
             for j in range(k):
                 live_segments += int(alive.sum())
                 last = j == k - 1
@@ -719,8 +732,12 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
                 terms, state_w, fin = self.segment(phi_w, adapted, state_w, alive, views, rec,
                                                    net_rows)
                 for f in fin:
-                    f["inner_updates"] = int(inner[f["slot"]])
-                    f["adaptive_updates"] = int(adapt[f["slot"]])
+                    s = f["slot"]
+                    if not last and not flush:  # a partial window at done: no update
+                        dropped[s] = True
+                        adapt[s] -= 1
+                    f["inner_updates"] = int(inner[s])
+                    f["adaptive_updates"] = int(adapt[s])
                 finals += fin
                 window.append(terms.total)
                 pl, vl = pl + float(terms.policy.detach()), vl + float(terms.value.detach())
@@ -744,7 +761,12 @@ class BatchedMetaISAR(MetaRun, BatchedTrainer):
                 h, c, p = (x.detach().index_copy(0, idx, y.detach())
                            for x, y in zip(state, state_w, strict=True))
                 state = (h, c, p)
-            self.step_slots(grads, rows)  # g_i += grads (unclipped); clip; Adam
+            if dropped.any():  # flush_partial_window = false: those slots' windows go
+                keep = ~dropped[rows]  # unused, as the reference worker empties its window
+                grads = [g[torch.from_numpy(keep).to(dev)] for g in grads]
+                rows = rows[keep]
+            if len(rows):
+                self.step_slots(grads, rows)  # g_i += grads (unclipped); clip; Adam
         for f in finals:
             f["t0"] = float(self.t_episode[f["slot"]])
         sums += [pl, vl, ent]

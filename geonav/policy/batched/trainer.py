@@ -53,6 +53,7 @@ from geonav.policy.batched.core import (
 )
 from geonav.policy.callbacks import Callback
 from geonav.policy.evaluation import spl
+from geonav.policy.isar import check_prev_view, teacher_record
 from geonav.policy.losses import LossTerms, gae_returns, policy_value_terms
 from geonav.policy.model import State
 from geonav.policy.optim import warm_up_lr
@@ -111,6 +112,10 @@ class BatchedTrainer(A3CTrainer):
 
     ``cfg.workers`` is recorded but not used: the engine runs in one process with
     ``cfg.torch_threads`` threads (parallelism comes from running several processes).
+    ``prev_view`` (a :class:`geonav.policy.teacher.PrevViewSpec`, the curriculum's
+    option B) feeds the network's extra input slot the view at each slot's cell at the
+    previous altitude, while acting and in the recompute with graph (A3C, PPO; ISAR and
+    SAVN take it as their own argument); without one the slot is zero-filled.
     """
 
     engine = "batched"
@@ -131,7 +136,11 @@ class BatchedTrainer(A3CTrainer):
         the runs' slots together (:mod:`geonav.policy.batched.packed`)."""
         self.device = resolve_device(device)
         kwargs.pop("mp_context", None)
+        if kwargs.get("prev_view") is not None:
+            self.prev_view_spec = kwargs["prev_view"]
+        kwargs.pop("prev_view", None)
         super().__init__(env_factory, net_cfg, cfg, **kwargs)
+        check_prev_view(self.net_cfg, self.prev_view_spec)
         check_supported(self.model, per_slot_parameters=self.per_slot_parameters)
         # Adam state follows the parameters to the device (load_state_dict casts it).
         opt_state = self.optimizer.state_dict()
@@ -157,6 +166,8 @@ class BatchedTrainer(A3CTrainer):
                        "torch_threads": self.cfg.torch_threads,
                        "workers": "unused (one process)"}
         d.pop("mp_context", None)
+        if self.prev_view_spec is not None:  # ISAR and SAVN write theirs (KL teacher too)
+            d["teacher"] = teacher_record(None, self.prev_view_spec)
         return d
 
     def save(self, path: Any, episodes: int, rng: dict[str, Any] | None = None) -> Any:
