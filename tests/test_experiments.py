@@ -170,6 +170,56 @@ def test_tiny_experiment_end_to_end(tmp_path):
     assert comp["methods"]["scratch"]["eval_convergence"]["n"] == 0
     assert comp["methods"]["transfer"]["eval_convergence"]["n"] == 2
     assert comp["eval_verdict"] == "no effect shown (runs missing)"
+    # an interim report of a run still going: a unit without result.json, its metrics cut
+    # mid-line, counts (with --partial only) at the episode it has reached
+    unit = root / "units/transfer/seed-1"
+    (unit / "result.json").unlink()
+    rows = (unit / "metrics.csv").read_text().splitlines()
+    (unit / "metrics.csv").write_text("\n".join(rows[:26]) + "\n" + rows[26][:5])
+    for partial in (False, True):
+        rep = subprocess.run(_geonav("experiment", "report", str(cfg), "--out", "runs",
+                                     *(["--partial"] if partial else []), cwd=tmp_path),
+                             cwd=tmp_path, capture_output=True, text=True, timeout=300)
+        assert rep.returncode == 0, rep.stderr[-3000:]
+        summary = json.loads((root / "summary.json").read_text())
+        rec = summary["comparisons"][0]["methods"]["transfer"]
+        report = (root / "report.md").read_text()
+        if not partial:
+            assert rec["convergence"]["n"] == 1 and summary["in_progress"] == []
+            assert "Interim report" not in report
+            continue
+        assert summary["in_progress"] == ["transfer/seed-1 (25 episodes)"]
+        assert rec["convergence"]["n"] == 2 and rec["in_progress"] == 1
+        running = [r for r in rec["runs"] if r["in_progress"]]
+        assert [(r["seed"], r["episodes"], r["conv"]["censored"]) for r in running] == \
+            [(1, 25, True)]
+        assert "**Interim report: 1 unit(s) still running**" in report
+        assert "(1 of 2 still running)" in report and "| 1/2 (+1 running) |" in report
+    table = subprocess.run(_geonav("experiment", "table", "runs", "--readme", "README.md",
+                                   cwd=tmp_path), cwd=tmp_path, capture_output=True,
+                           text=True, timeout=120)
+    assert table.returncode == 0, table.stderr[-3000:]
+    assert "(interim: 1 run still going)" in readme.read_text()
+
+
+def test_interim_curriculum_unit_counts_only_on_its_last_level(tmp_path):
+    from geonav.experiments.report import in_progress_result
+
+    state = {"curriculum": {"levels_m": [75.0, 45.0, 15.0]},
+             "stages": [{"alt_m": 75.0, "episodes": 300}]}
+    (tmp_path / "curriculum.json").write_text(json.dumps(state))
+    (tmp_path / "stage_1_45m").mkdir()
+    (tmp_path / "stage_1_45m" / "metrics.csv").write_text("episode,success\n1,0\n")
+    assert in_progress_result(tmp_path) is None  # still on 45 m: no e* at 15 m yet
+    state["stages"].append({"alt_m": 45.0, "episodes": 40})
+    (tmp_path / "curriculum.json").write_text(json.dumps(state))
+    assert in_progress_result(tmp_path) is None  # 15 m not started
+    (tmp_path / "stage_2_15m").mkdir()
+    (tmp_path / "stage_2_15m" / "metrics.csv").write_text("episode,success\n1,0\n")
+    got = in_progress_result(tmp_path)
+    assert got is not None and got["episodes_before_metrics"] == 340 and got["in_progress"]
+    assert got["metrics"] == str(tmp_path / "stage_2_15m" / "metrics.csv")
+    assert in_progress_result(tmp_path / "nothing") is None
 
 
 def test_resume_after_kill_skips_finished_units(tmp_path):

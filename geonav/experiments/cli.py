@@ -37,10 +37,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     _backend_args(p)
     p.add_argument("--seeds", type=_seeds, help="override the seeds of every variant, e.g. 0,1,2")
     p.set_defaults(handler=run_sweep)
-    p = esub.add_parser("report", help="re-write report.md and plots of a finished run")
+    p = esub.add_parser("report", help="re-write report.md and plots of a run (--partial: "
+                        "an interim report of one still going)")
     p.add_argument("config", help="experiment TOML")
     p.add_argument("--out", default="runs")
     p.add_argument("--only", action="append")
+    p.add_argument("--partial", action="store_true",
+                   help="count units that have started but not finished at the episode they "
+                        "have reached (censored there if they have not converged yet); the "
+                        "report is marked interim")
     p.set_defaults(handler=run_report)
     p = esub.add_parser("table", help="write README's results table from "
                         "docs/results/*/summary.json (--check: only compare)")
@@ -218,7 +223,7 @@ def run_report(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     root = Path(args.out) / cfg.name
     scenes, tasks = prepare_inputs(cfg, root)
-    write_report(cfg, root, cfg.stages_for(args.only), scenes, tasks, {})
+    write_report(cfg, root, cfg.stages_for(args.only), scenes, tasks, {}, partial=args.partial)
     print(f"report: {root / 'report.md'}")
     return 0
 

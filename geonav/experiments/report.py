@@ -25,14 +25,19 @@ from geonav.experiments.runner import RESULT, Unit, unit_dir
 
 
 def read_success(metrics_csv: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(success, elapsed_s, length, shortest_path) per episode in completion order."""
+    """(success, elapsed_s, length, shortest_path) per episode in completion order. A
+    last row cut short (a run still writing, or killed mid-line) is left out."""
     succ, wall, length, short = [], [], [], []
     with open(metrics_csv, newline="") as f:
         for row in csv.DictReader(f):
-            succ.append(float(row["success"]) > 0.5)
-            wall.append(float(row.get("elapsed_s") or "nan"))
-            length.append(float(row.get("length") or "nan"))
-            short.append(float(row.get("shortest_path") or "nan"))
+            try:
+                values = (float(row["success"]) > 0.5, float(row.get("elapsed_s") or "nan"),
+                          float(row.get("length") or "nan"),
+                          float(row.get("shortest_path") or "nan"))
+            except (TypeError, ValueError):
+                break
+            for out, v in zip((succ, wall, length, short), values):
+                out.append(v)
     return np.array(succ, bool), np.array(wall), np.array(length), np.array(short)
 
 
@@ -68,13 +73,45 @@ def verdict(a: str, ra: list[ConvergenceResult | EvalConvergence], b: str,
             f"{min(vb):.0f}-{max(vb):.0f} overlap)")
 
 
-def unit_stats(root: Path, unit: Unit, criterion: ConvergenceCriterion) -> dict[str, Any] | None:
-    """Convergence, wall time and final evaluation of one finished unit."""
+def in_progress_result(out_dir: Path) -> dict[str, Any] | None:
+    """A stand-in result for a unit that has started but not finished (no result.json):
+    where its metrics and evaluations are being written and how many episodes came before
+    them. For a curriculum unit only its last level counts (the one its e* is measured on);
+    one still on an earlier level gives None, as does a unit with no metrics yet."""
+    curriculum = out_dir / "curriculum.json"
+    if curriculum.exists():
+        state = json.loads(curriculum.read_text())
+        levels = state.get("curriculum", {}).get("levels_m") or []
+        done = state.get("stages") or []
+        if not levels or len(done) != len(levels) - 1:
+            return None
+        found = sorted(out_dir.glob(f"stage_{len(done)}_*/metrics.csv"))
+        if not found:
+            return None
+        metrics = found[0]
+        before = sum(int(st.get("episodes", 0)) for st in done)
+    else:
+        metrics, before = out_dir / "metrics.csv", 0
+    if not metrics.exists():
+        return None
+    return dict(metrics=str(metrics), evals=str(metrics.with_name("eval.csv")),
+                episodes_before_metrics=before, in_progress=True)
+
+
+def unit_stats(root: Path, unit: Unit, criterion: ConvergenceCriterion,
+               partial: bool = False) -> dict[str, Any] | None:
+    """Convergence, wall time and final evaluation of one finished unit; with ``partial``,
+    also of one still running (see :func:`in_progress_result`): its e* is taken over the
+    episodes it has so far, so a run that has not met the rule counts, censored, at the
+    episode it has reached (a lower bound), and it has no final evaluation."""
     out_dir = unit_dir(root, unit)
     result_path = out_dir / RESULT
-    if not result_path.exists():
+    if result_path.exists():
+        result = json.loads(result_path.read_text())
+    elif partial and (stand_in := in_progress_result(out_dir)) is not None:
+        result = stand_in
+    else:
         return None
-    result = json.loads(result_path.read_text())
     metrics = Path(result.get("metrics", out_dir / "metrics.csv"))
     if not metrics.exists():
         return None
@@ -98,6 +135,7 @@ def unit_stats(root: Path, unit: Unit, criterion: ConvergenceCriterion) -> dict[
         length_over_shortest=ratio,
         eval=result.get("eval", {}), success=success,
         trajectories=result.get("trajectories", []), result=result,
+        in_progress=bool(result.get("in_progress")),
     )
 
 
@@ -142,8 +180,10 @@ def _median(values: list[float | None]) -> float | None:
 
 def write_report(cfg: ExperimentConfig, root: Path, stage_keys: list[str],
                  scenes: dict[str, str], tasks: dict[str, str],
-                 failed: dict[Unit, str]) -> dict[str, Any]:
-    """Write summary.json, report.md and the PNGs; returns the summary."""
+                 failed: dict[Unit, str], partial: bool = False) -> dict[str, Any]:
+    """Write summary.json, report.md and the PNGs; returns the summary. With ``partial``
+    (an interim report of a run still going), units that have started but not finished
+    count at the episode they have reached, and the report says so."""
     crit = cfg.convergence
     lines = [f"# Experiment `{cfg.name}`", "",
              f"Config: `{cfg.source}`; seeds {list(cfg.seeds)}. Two convergence rules "
@@ -162,7 +202,18 @@ def write_report(cfg: ExperimentConfig, root: Path, stage_keys: list[str],
     stats_by_stage: dict[str, list[dict[str, Any]]] = {}
     for key in stage_keys:
         stats_by_stage[key] = [s for seed in cfg.seeds
-                               if (s := unit_stats(root, Unit(key, seed), crit)) is not None]
+                               if (s := unit_stats(root, Unit(key, seed), crit, partial))
+                               is not None]
+    running = [f"{key}/seed-{s['seed']} ({s['episodes']} episodes)"
+               for key in stage_keys for s in stats_by_stage[key] if s["in_progress"]]
+    summary["in_progress"] = running
+    if running:
+        lines += [f"**Interim report: {len(running)} unit(s) still running** "
+                  f"({', '.join(running)}). A running unit counts at the episode it has "
+                  "reached: if it has not met a rule yet, its e* is censored there (a lower "
+                  "bound that can only grow), and it has no final evaluation yet (the final "
+                  "columns are over finished units). Verdicts may change when they finish.",
+                  ""]
     for comp in cfg.compare:
         if not all(m in stats_by_stage for m in comp.methods):
             continue
@@ -173,8 +224,11 @@ def write_report(cfg: ExperimentConfig, root: Path, stage_keys: list[str],
               "|---|---|---|---|---|---|"]
     for key in stage_keys:
         st = cfg.stages[key]
+        n_run = sum(s["in_progress"] for s in stats_by_stage[key])
+        n_done = len(stats_by_stage[key]) - n_run
         lines.append(f"| {key} | {st.mode} | {st.algo} | {st.tasks} | {st.episodes} | "
-                     f"{len(stats_by_stage[key])}/{len(cfg.seeds)} |")
+                     f"{n_done}/{len(cfg.seeds)}"
+                     f"{f' (+{n_run} running)' if n_run else ''} |")
     (root / "report.md").write_text("\n".join(lines) + "\n")
     (root / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default))
     return summary
@@ -262,6 +316,9 @@ def _comparison(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
         cell = _fmt_conv(conv) + _fmt_iqm(st_train)
         if conv_total is not None:
             cell += f" (incl. earlier stages: {_fmt_conv(conv_total)})"
+        n_run = sum(s["in_progress"] for s in stats)
+        if n_run:
+            cell += f" ({n_run} of {len(stats)} still running)"
         lines.append(
             f"| {m} | {cell} | {_fmt_conv(econv) + _fmt_iqm(st_eval)} | "
             f"{conv['censored']}/{conv['n']} / "
@@ -280,8 +337,9 @@ def _comparison(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
             final_sampled_sr=s_sr, final_sampled_spl=s_spl, zero_shot_greedy_sr=zs_med,
             greedy_length_over_shortest=ratio,
             auc=_median([s["auc"] for s in stats]),
+            in_progress=sum(s["in_progress"] for s in stats),
             runs=[dict(seed=s["seed"], conv=s["conv"], eval_conv=s["eval_conv"],
-                       episodes=s["episodes"], eval=s["eval"],
+                       episodes=s["episodes"], eval=s["eval"], in_progress=s["in_progress"],
                        wall_total_s=s["wall_total_s"]) for s in stats])
     lines += ["", "median [min-max] over seeds; IQM: interquartile mean with a 95 % "
               "stratified-bootstrap interval (rliable). `+`: a lower bound (censored runs, "

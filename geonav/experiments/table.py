@@ -181,6 +181,9 @@ def comparison_row(folder: Path, summary: dict[str, Any], comp: dict[str, Any],
         ours.append(_median_ratio(methods[a].get(conv_key), methods[b].get(conv_key)))
     paper_ratio = paper[b] / paper[a] if expected is not None else None
     verdict = size_qualified(combined_verdict(outcomes), ours, paper_ratio)
+    running = sum(int(methods[m].get("in_progress") or 0) for m in order)
+    if running:
+        verdict += f" (interim: {running} run{'s' if running > 1 else ''} still going)"
     return (f"| {claim} | {paper_text} | {cells[0]} | {cells[1]} | "
             f"{verdict} | {_compute(comp, order)} |")
 
