@@ -95,7 +95,8 @@ def episodes_to_convergence(success: Sequence[bool] | np.ndarray,
     return ConvergenceResult(None, n)
 
 
-def summarize(results: Sequence[ConvergenceResult]) -> dict[str, float | int | None]:
+def summarize(results: Sequence[ConvergenceResult | EvalConvergence]
+              ) -> dict[str, float | int | None]:
     """Median and min-max over seeds; censored runs count at their budget (lower bounds).
 
     The median is reported as censored (a lower bound) when at least half of

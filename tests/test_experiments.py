@@ -396,3 +396,56 @@ def test_isar_base_loss_stage_option(tmp_path):
         cfgs[key] = cfg
     assert cfgs["isar_ppo_one"].base_loss == "ppo" and cfgs["isar_one"].base_loss == "a3c"
     assert replace(cfgs["isar_ppo_one"], base_loss="a3c") == cfgs["isar_one"]
+
+
+def _fake_unit(root: Path, stage: str, seed: int, success: list[int],
+               evals: list[tuple[int, float]]) -> None:
+    """A finished unit's files as the runner writes them (no training)."""
+    out = root / "units" / stage / f"seed-{seed}"
+    out.mkdir(parents=True)
+    rows = [f"{i + 1},{s},{i * 0.01:.2f},10,10" for i, s in enumerate(success)]
+    (out / "metrics.csv").write_text("episode,success,elapsed_s,length,shortest_path\n"
+                                     + "\n".join(rows) + "\n")
+    (out / "eval.csv").write_text("episode,greedy_sr\n"
+                                  + "".join(f"{e},{sr}\n" for e, sr in evals))
+    (out / "result.json").write_text(json.dumps(
+        {"stage": stage, "seed": seed, "episodes": len(success), "eval": {}}))
+
+
+def test_count_parents_compares_totals_by_both_rules(tmp_path):
+    """With count_parents, e* of each method by both rules, their ratios, the verdicts and
+    README's row count the episodes of the starting stages: a fine-tune that converges
+    fast on its own episodes but needed 500 meta-episodes before loses to scratch."""
+    import tomllib
+
+    from geonav.experiments.report import write_report
+    from geonav.experiments.table import comparison_row
+
+    data = tomllib.loads(TINY.replace("EPISODES", "150"))  # budget: noise check only
+    data["compare"][0]["count_parents"] = True
+    cfg = parse_config(data, "tiny.toml")
+    root = tmp_path / "tiny"
+    every = [(e, 1.0) for e in range(50, 401, 50)]
+    for seed in (0, 1):
+        _fake_unit(root, "pre", seed, [1] * 500, [])
+        _fake_unit(root, "transfer", seed, [1] * 300, every[:6])
+        _fake_unit(root, "scratch", seed, [0] * 199 + [1] * 201,
+                   [(e, 0.0 if e < 250 else 1.0) for e, _ in every])
+    summary = write_report(cfg, root, ["pre", "transfer", "scratch"], {}, {}, {})
+    comp = summary["comparisons"][0]
+    tr, sc = comp["methods"]["transfer"], comp["methods"]["scratch"]
+    assert tr["convergence"]["median"] + 500 == tr["convergence_incl_parents"]["median"]
+    assert tr["eval_convergence"]["median"] == 50
+    assert tr["eval_convergence_incl_parents"]["median"] == 550
+    assert sc["eval_convergence_incl_parents"]["median"] == 250  # no starting stage
+    # on its own episodes transfer is faster; in all, scratch is, and both verdicts say so
+    assert tr["convergence"]["median"] < sc["convergence"]["median"]
+    for key in ("verdict", "eval_verdict"):
+        assert comp[key].startswith("effect shown: scratch converges in fewer episodes"), \
+            comp[key]
+    assert comp["ratio"] > 1 and comp["eval_ratio"] == pytest.approx(550 / 250)
+    report = (root / "report.md").read_text()
+    assert "| 50 [50-50] (incl. earlier stages: 550 [550-550]) |" in report.replace(
+        "; IQM 50 (95% CI 50-50)", "")
+    row = comparison_row(root, summary, comp, tmp_path)
+    assert "(transfer 550-550 vs scratch 250-250)" in row and "not reproduced" in row

@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -27,7 +28,10 @@ from geonav.experiments.runner import RESULT, Unit, unit_dir
 def read_success(metrics_csv: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(success, elapsed_s, length, shortest_path) per episode in completion order. A
     last row cut short (a run still writing, or killed mid-line) is left out."""
-    succ, wall, length, short = [], [], [], []
+    succ: list[bool] = []
+    wall: list[float] = []
+    length: list[float] = []
+    short: list[float] = []
     with open(metrics_csv, newline="") as f:
         for row in csv.DictReader(f):
             try:
@@ -36,8 +40,10 @@ def read_success(metrics_csv: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray,
                           float(row.get("shortest_path") or "nan"))
             except (TypeError, ValueError):
                 break
-            for out, v in zip((succ, wall, length, short), values):
-                out.append(v)
+            succ.append(values[0])
+            wall.append(values[1])
+            length.append(values[2])
+            short.append(values[3])
     return np.array(succ, bool), np.array(wall), np.array(length), np.array(short)
 
 
@@ -300,7 +306,12 @@ def _comparison(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
         conv = summarize([s["conv"] for s in stats])
         # runs without evaluation rows (eval_every = 0, no eval.csv) have no evaluation e*
         econv = summarize(evaluated(stats))
-        conv_total = summarize([_with_parents(cfg, root, m, s) for s in stats]) \
+        # count_parents: e* by both rules (and so the ratios and verdicts) counts every
+        # episode of the stages the method started from (meta-training, earlier levels)
+        conv_total = summarize([_with_parents(cfg, root, m, s, s["conv"]) for s in stats]) \
+            if comp.count_parents else None
+        econv_total = summarize([_with_parents(cfg, root, m, s, s["eval_conv"])
+                                 for s in stats if s["eval_conv"].evaluations > 0]) \
             if comp.count_parents else None
         wall = _median([s["wall_to_convergence_s"] for s in stats])
         ev = [s["eval"] for s in stats]
@@ -319,19 +330,23 @@ def _comparison(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
         n_run = sum(s["in_progress"] for s in stats)
         if n_run:
             cell += f" ({n_run} of {len(stats)} still running)"
+        ecell = _fmt_conv(econv) + _fmt_iqm(st_eval)
+        if econv_total is not None:
+            ecell += f" (incl. earlier stages: {_fmt_conv(econv_total)})"
         lines.append(
-            f"| {m} | {cell} | {_fmt_conv(econv) + _fmt_iqm(st_eval)} | "
+            f"| {m} | {cell} | {ecell} | "
             f"{conv['censored']}/{conv['n']} / "
             f"{econv['censored']}/{econv['n']} | {_f(g_sr)} / {_f(g_spl)} | "
             f"{_f(s_sr)} / {_f(s_spl)} | "
             f"{_f(zs_med) + (f' [{min(zs):.2f}-{max(zs):.2f}]' if zs else '')} | "
             f"{_f(ratio)} | {'n/a' if wall is None else f'{wall:.1f} s'} |")
-        for rule, c in (("train", conv_total or conv), ("eval", econv)):
+        for rule, c in (("train", conv_total or conv), ("eval", econv_total or econv)):
             if c["median"] is not None:
                 med[rule][m] = c["median"]
                 cens[rule][m] = bool(c["median_censored"])
         record["methods"][m] = dict(
             convergence=conv, eval_convergence=econv, convergence_incl_parents=conv_total,
+            eval_convergence_incl_parents=econv_total,
             convergence_stats=st_train, eval_convergence_stats=st_eval,
             wall_to_convergence_s=wall, final_greedy_sr=g_sr, final_greedy_spl=g_spl,
             final_sampled_sr=s_sr, final_sampled_spl=s_spl, zero_shot_greedy_sr=zs_med,
@@ -356,8 +371,14 @@ def _comparison(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
             record["ratio" if rule == "train" else "eval_ratio"] = value
         for rule, key, label in (("train", "conv", "training-SR rule"),
                                  ("eval", "eval_conv", "greedy-evaluation rule")):
-            pick = evaluated if key == "eval_conv" else (lambda st: [s["conv"] for s in st])
-            v = verdict(a, pick(stats_by_stage[a]), b, pick(stats_by_stage[b]))
+            def pick(method: str, key: str = key) -> list[Any]:
+                runs = [s for s in stats_by_stage[method]
+                        if key == "conv" or s["eval_conv"].evaluations > 0]
+                if comp.count_parents:
+                    return [_with_parents(cfg, root, method, s, s[key]) for s in runs]
+                return [s[key] for s in runs]
+
+            v = verdict(a, pick(a), b, pick(b))
             record["verdict" if rule == "train" else "eval_verdict"] = v
             lines += [f"**Verdict ({label}): {v}.**", ""]
     png = _plot_curves(cfg, comp, root, stats_by_stage, chance)
@@ -435,18 +456,19 @@ def _parent_sections(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
     return lines
 
 
-def _with_parents(cfg: ExperimentConfig, root: Path, stage: str, s: dict[str, Any]
-                  ) -> ConvergenceResult:
-    """e* of the final stage plus all episodes of the stages it started from."""
+def _with_parents(cfg: ExperimentConfig, root: Path, stage: str, s: dict[str, Any],
+                  conv: ConvergenceResult | EvalConvergence
+                  ) -> ConvergenceResult | EvalConvergence:
+    """``conv`` (an e* of the final stage by either rule) plus all episodes of the stages
+    it started from (and of earlier curriculum levels)."""
     extra = int(s["result"].get("episodes_before_metrics", 0))
     parent = cfg.stages[stage].init
     while parent is not None:
         r = json.loads((unit_dir(root, Unit(parent, s["seed"])) / RESULT).read_text())
         extra += int(r.get("episodes", 0))
         parent = cfg.stages[parent].init
-    conv: ConvergenceResult = s["conv"]
-    return ConvergenceResult(None if conv.episodes is None else conv.episodes + extra,
-                             conv.budget + extra)
+    return replace(conv, episodes=None if conv.episodes is None else conv.episodes + extra,
+                   budget=conv.budget + extra)
 
 
 def _slug(text: str) -> str:

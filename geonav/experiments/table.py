@@ -176,9 +176,12 @@ def comparison_row(folder: Path, summary: dict[str, Any], comp: dict[str, Any],
         paper_text = "n/a (not in this summary)" if "paper" not in comp else "n/a"
     cells, outcomes, ours = [], {}, []
     for _, conv_key, verdict_key, rule in RULES:
-        cells.append(_ratio(a, b, methods[a].get(conv_key), methods[b].get(conv_key)))
+        # a comparison that counts the starting stages (count_parents) compares totals
+        ca, cb = (methods[x].get(f"{conv_key}_incl_parents") or methods[x].get(conv_key)
+                  for x in (a, b))
+        cells.append(_ratio(a, b, ca, cb))
         outcomes[rule] = rule_outcome(comp.get(verdict_key), expected)
-        ours.append(_median_ratio(methods[a].get(conv_key), methods[b].get(conv_key)))
+        ours.append(_median_ratio(ca, cb))
     paper_ratio = paper[b] / paper[a] if expected is not None else None
     verdict = size_qualified(combined_verdict(outcomes), ours, paper_ratio)
     running = sum(int(methods[m].get("in_progress") or 0) for m in order)
