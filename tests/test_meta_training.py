@@ -11,6 +11,7 @@ import torch
 from geonav.camera import Camera
 from geonav.convergence import ConvergenceCriterion
 from geonav.env import GeoNavEnv
+from geonav.errors import ConfigError
 from geonav.policy.callbacks import Callback
 from geonav.policy.encoders import build_frozen_encoder
 from geonav.policy.evaluation import RandomAgent, eval_starts, evaluate
@@ -135,6 +136,36 @@ def test_curriculum_advances_on_criterion_and_budget_and_decays_the_teacher(scen
                                           teacher="none"),
                          out_dir=tmp_path / "b", criterion=hard)
     assert [(s.episodes, s.converged_at) for s in res.stages] == [(5, None), (5, None)]
+
+
+def test_curriculum_keeps_the_task_sets_episode_cap_unless_told(scene_files, tmp_path,
+                                                               monkeypatch):
+    """CurriculumConfig.max_steps None (the default): every level runs with the task set's
+    own cap (the env factory's); set, it overrides it."""
+    import geonav.policy.engine as engine
+    from geonav.policy.cli import EnvFactory
+    from geonav.policy.curriculum import run_curriculum
+
+    class Built(Exception):
+        pass
+
+    seen = []
+
+    def fake_build_trainer(algo, eng, factory, *args, **kwargs):
+        seen.append((factory.alt_m, factory.max_steps, factory().max_steps_of(0)))
+        raise Built
+
+    monkeypatch.setattr(engine, "build_trainer", fake_build_trainer)
+    f = EnvFactory(str(scene_files / "scene"), str(scene_files / "tasks.json"), obs_size_px=32)
+    for cap, out, want in ((None, "a", 20), (7, "b", 7)):
+        with pytest.raises(Built):
+            run_curriculum(f, None, "isar", ISARConfig(workers=0, seed=0),
+                           CurriculumConfig(levels_m=(45.0,), stage_episodes=2,
+                                            teacher="none", max_steps=cap),
+                           out_dir=tmp_path / out, net_cfg=tiny_net())
+        assert seen[-1][0] == 45.0 and seen[-1][2] == want, seen
+    with pytest.raises(ConfigError, match="max_steps"):
+        CurriculumConfig(max_steps=0)
 
 
 def test_meta_update_clip_scales_the_summed_gradient():

@@ -165,9 +165,10 @@ def run_curriculum(env_factory: Any, init: str | None, algo: str, base_cfg: A3CC
     for s in state["stages"]:
         result.stages.append(StageResult(**s))
         prev_ckpt, prev_alt = s["checkpoint"], s["alt_m"]
+    cap = cfg.max_steps if cfg.max_steps is not None else env_factory.max_steps
     for i in range(len(state["stages"]), len(cfg.levels_m)):
         alt = float(cfg.levels_m[i])
-        factory = replace(env_factory, alt_m=alt, max_steps=cfg.max_steps)
+        factory = replace(env_factory, alt_m=alt, max_steps=cap)
         stage_dir = out / f"stage_{i}_{alt:g}m"
         latest = stage_dir / "checkpoints" / "latest.pt"
         resume = str(latest) if latest.exists() else None
@@ -180,7 +181,7 @@ def run_curriculum(env_factory: Any, init: str | None, algo: str, base_cfg: A3CC
                 raise ConfigError(f"stage {i} ({alt:g} m) needs a teacher, but there is no "
                                   "previous policy with a known altitude (pass init and "
                                   "first_teacher_alt_m, or teacher_levels_m without it)")
-            prev_factory = replace(env_factory, alt_m=float(prev_alt), max_steps=cfg.max_steps)
+            prev_factory = replace(env_factory, alt_m=float(prev_alt), max_steps=cap)
             if cfg.teacher == "input":
                 prev_view = PrevViewSpec(prev_factory, float(prev_alt))
             else:

@@ -250,7 +250,8 @@ def add_parsers(subparsers: Any) -> None:
     c.add_argument("--init", default=None, metavar="CKPT", help="starting policy (weights)")
     c.add_argument("--levels", default=None, help="altitudes in metres, e.g. 75,45,15")
     c.add_argument("--stage-episodes", type=positive_int, default=None, help="budget per stage")
-    c.add_argument("--max-steps", type=positive_int, default=None, help="T_max (default 120)")
+    c.add_argument("--max-steps", type=positive_int, default=None,
+                   help="T_max of every level (default: the task set's max_steps)")
     c.add_argument("--teacher", choices=["kl", "none", "input"], default=None,
                    help="KL prior to the previous stage (default), none, or 'input': the "
                    "previous-altitude view in the network's extra input slot (needs an "

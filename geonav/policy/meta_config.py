@@ -186,8 +186,9 @@ class CurriculumConfig:
     """Stage altitudes in metres, in order, on the same lattice."""
     stage_episodes: int = 2000
     """Episode budget of each stage."""
-    max_steps: int = 120
-    """Episode cap T_max of every stage."""
+    max_steps: int | None = None
+    """Episode cap T_max of every stage; None: the task set's own (whole-scene tasks are
+    made with the paper's 120). Set, it overrides the task set's at every level."""
     teacher: str = "kl"
     """'kl': KL prior to the previous stage's frozen policy (option A, default); 'none';
     'input': option B, the extra input slot E(o^prev) fed the view at the same cell at the
@@ -207,7 +208,7 @@ class CurriculumConfig:
             raise ConfigError("levels_m must name at least one altitude")
         if self.teacher not in TEACHERS:
             raise ConfigError(f"teacher must be one of {TEACHERS}, not {self.teacher!r}")
-        if self.stage_episodes < 1 or self.max_steps < 1:
+        if self.stage_episodes < 1 or (self.max_steps is not None and self.max_steps < 1):
             raise ConfigError("stage_episodes and max_steps must be >= 1")
         if not 0.0 < self.teacher_decay_fraction <= 1.0:
             raise ConfigError("teacher_decay_fraction must lie in (0, 1]")
