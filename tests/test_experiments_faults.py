@@ -292,6 +292,11 @@ def test_sweep_runs_a_grid_through_one_backend_with_one_table(tmp_path):
     table = (folder / "sweep.md").read_text()
     assert "| stages.tune.lr | stages.tune.max_grad_norm | comparison | method |" in table
     assert "| 0.001 | 20.0 | c | tune |" in table and "| 0.01 | 20.0 | c | tune |" in table
+    assert "| e* training SR (median) | censored | e* greedy eval (median) | censored | " \
+        "final greedy SR (median) |" in table
+    for r in record["rows"]:  # what each point's report says, not n/a
+        assert 0.0 <= r["final_greedy_sr"] <= 1.0 and r["eval_n"] == 2
+        assert r["median_episodes"] is not None and r["eval_median_episodes"] is not None
     assert json.loads((folder / "sweep.json").read_text())["rows"] == record["rows"]
     # resume: a rerun finds every unit done, shared ones through their links
     events = []

@@ -138,12 +138,17 @@ def run_sweep(path: str | os.PathLike[str], params: list[str],
         for comp in comps:
             for method, rec in comp["methods"].items():
                 conv = rec["convergence"]
+                econv = rec.get("eval_convergence") or {}
                 rows.append(dict(base, comparison=comp["name"], method=method,
                                  median_episodes=conv.get("median"),
                                  median_censored=conv.get("median_censored"),
                                  censored=conv.get("censored"), n=conv.get("n"),
-                                 final_success=rec.get("final_success"),
-                                 final_spl=rec.get("final_spl")))
+                                 eval_median_episodes=econv.get("median"),
+                                 eval_median_censored=econv.get("median_censored"),
+                                 eval_censored=econv.get("censored"), eval_n=econv.get("n"),
+                                 final_greedy_sr=rec.get("final_greedy_sr"),
+                                 final_greedy_spl=rec.get("final_greedy_spl"),
+                                 final_sampled_sr=rec.get("final_sampled_sr")))
     folder = Path(out_root).resolve() / name
     table = _table(keys, rows)
     (folder / "sweep.md").write_text(f"# Sweep `{name}`\n\n" + table + "\n")
@@ -153,16 +158,22 @@ def run_sweep(path: str | os.PathLike[str], params: list[str],
 
 
 def _table(keys: list[str], rows: list[dict[str, Any]]) -> str:
-    head = [*keys, "comparison", "method", "episodes to convergence (median)", "censored",
-            "final success", "failed units"]
+    head = [*keys, "comparison", "method", "e* training SR (median)", "censored",
+            "e* greedy eval (median)", "censored", "final greedy SR (median)",
+            "failed units"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+
+    def conv(med: float | None, censored: bool | None) -> str:
+        return "n/a" if med is None else f"{med:.0f}{'+' if censored else ''}"
+
     for r in rows:
-        med = r.get("median_episodes")
-        conv = "n/a" if med is None else f"{med:.0f}{'+' if r.get('median_censored') else ''}"
         cens = "" if r.get("n") is None else f"{r['censored']}/{r['n']}"
-        sr = r.get("final_success")
+        ecens = "" if r.get("eval_n") is None else f"{r['eval_censored']}/{r['eval_n']}"
+        sr = r.get("final_greedy_sr")
         cells = [*(str(r[k]) for k in keys), str(r.get("comparison") or ""),
-                 str(r.get("method") or ""), conv, cens,
+                 str(r.get("method") or ""),
+                 conv(r.get("median_episodes"), r.get("median_censored")), cens,
+                 conv(r.get("eval_median_episodes"), r.get("eval_median_censored")), ecens,
                  "n/a" if sr is None else f"{sr:.2f}", str(r["failed_units"])]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
