@@ -200,6 +200,37 @@ def test_tiny_experiment_end_to_end(tmp_path):
                            text=True, timeout=120)
     assert table.returncode == 0, table.stderr[-3000:]
     assert "(interim: 1 run still going)" in readme.read_text()
+    # --only PART reports that part's comparisons only, not every other part whose stages
+    # it happens to run (configs/paper.toml's wild-aug reuses all of wild's stages)
+    cfg.write_text(cfg.read_text().replace("[flight]", """[[compare]]
+name = "scratch alone"
+part = "scratch-only"
+methods = ["scratch"]
+
+[flight]"""))
+    for only, names in ((["--only", "scratch-only"], ["scratch alone"]),
+                        ([], ["transfer vs scratch", "scratch alone"])):
+        rep = subprocess.run(_geonav("experiment", "report", str(cfg), "--out", "runs",
+                                     *only, cwd=tmp_path), cwd=tmp_path,
+                             capture_output=True, text=True, timeout=300)
+        assert rep.returncode == 0, rep.stderr[-3000:]
+        summary = json.loads((root / "summary.json").read_text())
+        assert [c["claim"] for c in summary["comparisons"]] == names
+        assert ("## transfer vs scratch" in (root / "report.md").read_text()) == (not only)
+
+
+def test_read_success_skips_only_a_cut_last_row(tmp_path):
+    from geonav.experiments.report import read_success
+
+    head = "episode,success,elapsed_s,length,shortest_path\n"
+    rows = [f"{i},{i % 2},{0.1 * i},5,4" for i in range(1, 6)]
+    f = tmp_path / "metrics.csv"
+    f.write_text(head + "\n".join(rows) + "\n6,")  # a run killed mid-line
+    succ, wall, length, short = read_success(f)
+    assert succ.tolist() == [True, False, True, False, True] and len(wall) == 5
+    f.write_text(head + "\n".join(rows[:2] + ["3,x,0.3,5,4"] + rows[3:]) + "\n")
+    with pytest.raises(ValueError, match="line 4 cannot be read"):
+        read_success(f)  # a bad row in the middle is corruption, not a cut curve
 
 
 def test_interim_curriculum_unit_counts_only_on_its_last_level(tmp_path):
@@ -362,6 +393,21 @@ methods = ["wild"]
     edited["stages"]["wild"]["lr"] = 0.01  # the part's own stage: refused to resume
     mine = parse_config(edited, "mine")
     assert _experiment_part(cfg.to_dict(), stages) != _experiment_part(mine.to_dict(), stages)
+
+    # a part added to the config since the run began is new, not an edit: the run folder
+    # takes it (its stage, task set and scene were not in the run's config.json)
+    from geonav.experiments.runner import _same_part
+
+    base = parse_config(tomllib.loads(TINY.replace("EPISODES", "20")), "base").to_dict()
+    assert _same_part(_experiment_part(base, stages), _experiment_part(cfg.to_dict(), stages))
+    assert _same_part(_experiment_part(base), _experiment_part(cfg.to_dict()))
+    assert not _same_part(_experiment_part(cfg.to_dict(), stages),
+                          _experiment_part(mine.to_dict(), stages))
+    assert not _same_part(_experiment_part(cfg.to_dict()), _experiment_part(other.to_dict()))
+    conv = cfg.to_dict()
+    conv["convergence"] = dict(conv["convergence"], window=7)
+    assert not _same_part(_experiment_part(cfg.to_dict(), stages),
+                          _experiment_part(conv, stages))
 
 
 def test_isar_base_loss_stage_option(tmp_path):

@@ -223,7 +223,8 @@ def run_report(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     root = Path(args.out) / cfg.name
     scenes, tasks = prepare_inputs(cfg, root)
-    write_report(cfg, root, cfg.stages_for(args.only), scenes, tasks, {}, partial=args.partial)
+    write_report(cfg, root, cfg.stages_for(args.only), scenes, tasks, {}, partial=args.partial,
+                 parts=args.only)
     print(f"report: {root / 'report.md'}")
     return 0
 

@@ -27,19 +27,30 @@ from geonav.experiments.runner import RESULT, Unit, unit_dir
 
 def read_success(metrics_csv: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(success, elapsed_s, length, shortest_path) per episode in completion order. A
-    last row cut short (a run still writing, or killed mid-line) is left out."""
+    last row cut short (a run still writing, or killed mid-line) is left out.
+
+    Raises:
+        ValueError: a row that cannot be read is followed by others (a corrupt file, not a
+            cut last row): the curve would silently stop there.
+    """
     succ: list[bool] = []
     wall: list[float] = []
     length: list[float] = []
     short: list[float] = []
+    bad: int | None = None
     with open(metrics_csv, newline="") as f:
-        for row in csv.DictReader(f):
+        for line, row in enumerate(csv.DictReader(f), start=2):
+            if bad is not None:
+                raise ValueError(f"{metrics_csv}: line {bad} cannot be read (success, "
+                                 "elapsed_s, length, shortest_path) but is not the last row; "
+                                 "the file is corrupt")
             try:
                 values = (float(row["success"]) > 0.5, float(row.get("elapsed_s") or "nan"),
                           float(row.get("length") or "nan"),
                           float(row.get("shortest_path") or "nan"))
             except (TypeError, ValueError):
-                break
+                bad = line
+                continue
             succ.append(values[0])
             wall.append(values[1])
             length.append(values[2])
@@ -186,10 +197,13 @@ def _median(values: list[float | None]) -> float | None:
 
 def write_report(cfg: ExperimentConfig, root: Path, stage_keys: list[str],
                  scenes: dict[str, str], tasks: dict[str, str],
-                 failed: dict[Unit, str], partial: bool = False) -> dict[str, Any]:
+                 failed: dict[Unit, str], partial: bool = False,
+                 parts: list[str] | None = None) -> dict[str, Any]:
     """Write summary.json, report.md and the PNGs; returns the summary. With ``partial``
     (an interim report of a run still going), units that have started but not finished
-    count at the episode they have reached, and the report says so."""
+    count at the episode they have reached, and the report says so. With ``parts`` (the
+    run's ``--only``), only those parts' comparisons are written, not every other part
+    whose stages happen to be among ``stage_keys`` (a part that reuses another's runs)."""
     crit = cfg.convergence
     lines = [f"# Experiment `{cfg.name}`", "",
              f"Config: `{cfg.source}`; seeds {list(cfg.seeds)}. Two convergence rules "
@@ -222,6 +236,8 @@ def write_report(cfg: ExperimentConfig, root: Path, stage_keys: list[str],
                   ""]
     for comp in cfg.compare:
         if not all(m in stats_by_stage for m in comp.methods):
+            continue
+        if parts and (comp.part or comp.name) not in parts:
             continue
         lines += _comparison(cfg, comp, root, stats_by_stage, summary, scenes)
     if failed:

@@ -364,6 +364,7 @@ class _Run:
     done: dict[Unit, dict[str, Any]] = field(default_factory=dict)
     failed: dict[Unit, str] = field(default_factory=dict)
     retries: dict[Unit, int] = field(default_factory=dict)
+    only: list[str] | None = None
 
 
 def _open_run(cfg: ExperimentConfig, out_root: str | os.PathLike[str], only: list[str] | None,
@@ -374,15 +375,15 @@ def _open_run(cfg: ExperimentConfig, out_root: str | os.PathLike[str], only: lis
     previous = _read_json(root / "config.json")
     resolved = cfg.to_dict()
     stage_keys = cfg.stages_for(only)
-    if previous is not None and _experiment_part(previous, stage_keys) != \
-            _experiment_part(resolved, stage_keys):
+    if previous is not None and not _same_part(_experiment_part(previous, stage_keys),
+                                               _experiment_part(resolved, stage_keys)):
         raise ConfigError(f"{root} holds a run of a different config; use another name or "
                           "remove the folder")
     _write_json(root / "config.json", resolved)
     scenes, tasks = prepare_inputs(cfg, root, progress, shared_inputs,
                                    stage_keys if only else None)
     units = [Unit(s, seed) for s in stage_keys for seed in cfg.seeds]
-    return _Run(cfg, root, stage_keys, units, scenes, tasks)
+    return _Run(cfg, root, stage_keys, units, scenes, tasks, only=only)
 
 
 def run_experiment(
@@ -506,7 +507,7 @@ def _summaries(runs: list[_Run], report: bool) -> list[dict[str, Any]]:
             from geonav.experiments.report import write_report
 
             summary = write_report(run.cfg, run.root, run.stage_keys, run.scenes, run.tasks,
-                                   run.failed)
+                                   run.failed, parts=run.only)
         summary["retries"] = {u.key: n for u, n in run.retries.items()}
         written = _read_json(run.root / "summary.json") if report else None
         if written is not None:
@@ -718,6 +719,20 @@ def _experiment_part(d: dict[str, Any], stages: list[str] | None = None) -> Any:
     return {"stages": st, "tasks": tasks, "scenes": {k: (d.get("scenes") or {}).get(k)
                                                      for k in sc},
             "convergence": d.get("convergence")}
+
+
+def _same_part(before: dict[str, Any], now: dict[str, Any]) -> bool:
+    """Whether a run's part may resume under the config now: every stage, task set and
+    scene it held is unchanged. A name the run's config did not have (a part added to the
+    config since) is new, not a change."""
+    for k, v in now.items():
+        old = before.get(k)
+        if isinstance(v, dict) and isinstance(old, dict) and k != "convergence":
+            if any(old.get(n) is not None and old.get(n) != spec for n, spec in v.items()):
+                return False
+        elif old != v:
+            return False
+    return True
 
 
 def _payload(cfg: ExperimentConfig, root: Path, u: Unit, scenes: dict[str, str],
