@@ -217,6 +217,15 @@ methods = ["scratch"]
         summary = json.loads((root / "summary.json").read_text())
         assert [c["claim"] for c in summary["comparisons"]] == names
         assert ("## transfer vs scratch" in (root / "report.md").read_text()) == (not only)
+    # a run made with --seeds is reported with the same --seeds (part 1 ran 5 seeds of a
+    # 3-seed config); here a subset
+    rep = subprocess.run(_geonav("experiment", "report", str(cfg), "--out", "runs", "--seeds",
+                                 "0", "--only", "transfer", cwd=tmp_path), cwd=tmp_path,
+                         capture_output=True, text=True, timeout=300)
+    assert rep.returncode == 0, rep.stderr[-3000:]
+    comp = json.loads((root / "summary.json").read_text())["comparisons"][0]
+    assert [r["seed"] for r in comp["methods"]["scratch"]["runs"]] == [0]
+    assert "seeds [0]." in (root / "report.md").read_text()
 
 
 def test_read_success_skips_only_a_cut_last_row(tmp_path):

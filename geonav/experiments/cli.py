@@ -42,6 +42,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("config", help="experiment TOML")
     p.add_argument("--out", default="runs")
     p.add_argument("--only", action="append")
+    p.add_argument("--seeds", type=_seeds, help="the seeds to report, when the run used "
+                   "--seeds (e.g. 0,1,2,3,4); default: the config's")
+    p.add_argument("--name", help="the run folder's name, when the run used --name")
     p.add_argument("--partial", action="store_true",
                    help="count units that have started but not finished at the episode they "
                         "have reached (censored there if they have not converged yet); the "
@@ -220,7 +223,7 @@ def run_report(args: argparse.Namespace) -> int:
     from geonav.experiments.report import write_report
     from geonav.experiments.runner import prepare_inputs
 
-    cfg = load_config(args.config)
+    cfg = load_config(args.config, _overrides(args))
     root = Path(args.out) / cfg.name
     scenes, tasks = prepare_inputs(cfg, root)
     write_report(cfg, root, cfg.stages_for(args.only), scenes, tasks, {}, partial=args.partial,
