@@ -151,6 +151,7 @@ def test_sigterm_lands_a_background_fly_whose_sigint_is_ignored(scene: Any, tmp_
 
 
 def test_sighup_ends_the_flight_like_ctrl_c(scene: Any, tmp_path: Path) -> None:
+    before = signal.getsignal(signal.SIGHUP)  # SIG_IGN when the suite runs under nohup
     with _emulator(scene, "ardupilot") as emu:
         policy = _Hook([0, 3] * 20, 2, lambda: os.kill(os.getpid(), signal.SIGHUP))
         result = _fly(scene, emu, policy, tmp_path, target_cell=(9, 9))
@@ -158,7 +159,7 @@ def test_sighup_ends_the_flight_like_ctrl_c(scene: Any, tmp_path: Path) -> None:
         assert result.exit_code == 129
         assert read_record(result.record_path)[-1]["exit_code"] == 129
         assert result.end_action == "land" and result.end_ok and not emu.armed
-    assert signal.getsignal(signal.SIGHUP) is signal.SIG_DFL  # handlers restored
+    assert signal.getsignal(signal.SIGHUP) is before  # handlers restored
 
 
 # ------------------------------------------------------------- operator at each phase
