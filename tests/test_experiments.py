@@ -418,6 +418,18 @@ methods = ["wild"]
     assert not _same_part(_experiment_part(cfg.to_dict(), stages),
                           _experiment_part(conv, stages))
 
+    # ... unless the folder already holds units of that stage: config.json is rewritten by
+    # every run, so a stage dropped from the config, run around and added again with other
+    # settings would otherwise resume its old units unchecked
+    from geonav.experiments.runner import _open_run
+
+    run_root = tmp_path / "runs"
+    (run_root / cfg.name / "units" / "wild" / "seed-0").mkdir(parents=True)
+    (run_root / cfg.name / "config.json").write_text(json.dumps(base))
+    with pytest.raises(ConfigError, match="units/wild.*does not name"):
+        _open_run(cfg, run_root, ["wild"], None)
+    assert json.loads((run_root / cfg.name / "config.json").read_text()) == base
+
 
 def test_isar_base_loss_stage_option(tmp_path):
     """ISAR's base_loss (docs/learning.md) is checked when the config is read, and the

@@ -379,6 +379,7 @@ def _open_run(cfg: ExperimentConfig, out_root: str | os.PathLike[str], only: lis
                                                _experiment_part(resolved, stage_keys)):
         raise ConfigError(f"{root} holds a run of a different config; use another name or "
                           "remove the folder")
+    _refuse_orphan_units(root, previous, stage_keys)
     _write_json(root / "config.json", resolved)
     scenes, tasks = prepare_inputs(cfg, root, progress, shared_inputs,
                                    stage_keys if only else None)
@@ -733,6 +734,22 @@ def _same_part(before: dict[str, Any], now: dict[str, Any]) -> bool:
         elif old != v:
             return False
     return True
+
+
+def _refuse_orphan_units(root: Path, previous: dict[str, Any] | None,
+                         stage_keys: list[str]) -> None:
+    """A stage the folder's config.json does not name is new to the folder only if it has
+    no units there: config.json is rewritten by every run, so units of a stage that was
+    dropped from the config, run around, and added again may come from other settings."""
+    known = set((previous or {}).get("stages") or {})
+    for s in stage_keys:
+        d = root / "units" / s
+        if s not in known and d.is_dir() and any(d.iterdir()):
+            raise ConfigError(
+                f"{d} holds runs of stage {s!r}, which this folder's config.json does not "
+                "name (was it dropped from the config and added again?), so their settings "
+                "cannot be checked; remove that folder to rerun the stage, or use another "
+                "name")
 
 
 def _payload(cfg: ExperimentConfig, root: Path, u: Unit, scenes: dict[str, str],
