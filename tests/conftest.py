@@ -2,9 +2,31 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from geonav.testing import textured_scene, tiny_taskset
+
+# The modules that take longest (pytest --durations, 2-core machine), run first: with
+# scripts/test.sh's `-n 2 --dist loadfile` each module runs whole on one worker, and a long
+# module left to the end would run alone while the other worker idles.
+SLOW_MODULES = (
+    "test_experiments_ray.py",
+    "test_experiments.py",
+    "test_corr_encoder.py",
+    "test_experiments_faults.py",
+    "test_experiments_packed.py",
+    "test_batched_packed.py",
+    "test_paper_parts.py",
+    "test_batched_meta.py",
+)
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Slow modules first, each module's tests in their own order (a stable sort)."""
+    rank = {name: i for i, name in enumerate(SLOW_MODULES)}
+    items.sort(key=lambda it: rank.get(Path(str(it.path)).name, len(SLOW_MODULES)))
 
 
 @pytest.fixture(scope="session")
