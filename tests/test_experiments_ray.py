@@ -16,9 +16,12 @@ from pathlib import Path
 
 import pytest
 
-# Before ray is imported (it reads them then): no usage reports, and a single-node
-# cluster on the loopback address only.
-RAY_ENV = {"RAY_USAGE_STATS_ENABLED": "0", "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0"}
+# Before ray is imported (it reads them then): no usage reports, a single-node cluster on
+# the loopback address only, and workers at the tests' own priority: at Ray's default
+# niceness (15) a unit's imports took 25x longer while the cores were busy
+# (bench/bench_ray_niceness.py), which made this module the suite's long pole.
+RAY_ENV = {"RAY_USAGE_STATS_ENABLED": "0", "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0",
+           "RAY_worker_niceness": "0"}
 os.environ.update(RAY_ENV)
 
 ray = pytest.importorskip("ray", reason="the Ray backend needs ray: pip install 'geonav[ray]'")
