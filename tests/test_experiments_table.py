@@ -118,6 +118,22 @@ def test_censored_ratios_are_bounds(tmp_path):
     assert "<= 0.02 (transfer 100-150 vs scratch 5000-5000+)" in table.render_table(tmp_path)
 
 
+def test_censored_medians_say_whether_any_run_converged(tmp_path):
+    """Both medians censored: "neither converged" only when no run of either method met
+    the rule; a method with some converged runs makes it "both medians censored"."""
+    s = _summary(NONE, NONE, PAPER)
+    methods = s["comparisons"][0]["methods"]
+    methods["scratch"]["convergence"] = _conv((5000, 5000, 5000), 3, True)
+    methods["transfer"]["convergence"] = _conv((5000, 5000, 5000), 3, True)
+    methods["scratch"]["eval_convergence"] = _conv((5000, 5000, 5000), 3, True)
+    methods["transfer"]["eval_convergence"] = _conv((4750, 5000, 5000), 2, True)
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "summary.json").write_text(json.dumps(s))
+    text = table.render_table(tmp_path)
+    assert "| n/a, neither converged (transfer 5000-5000+ vs scratch 5000-5000+) |" in text
+    assert "| n/a, both medians censored (transfer 4750-5000+ vs scratch 5000-5000+) |" in text
+
+
 def test_claim_label_names_the_row(tmp_path):
     (tmp_path / "a").mkdir()
     (tmp_path / "a" / "summary.json").write_text(

@@ -267,12 +267,17 @@ def _json_default(v: Any) -> Any:
 
 
 def _ratio_text(a: str, b: str, med: dict[str, float], cens: dict[str, bool],
-                comp: CompareSpec, rule: str) -> tuple[str, float | None]:
+                comp: CompareSpec, rule: str,
+                all_cens: dict[str, bool] | None = None) -> tuple[str, float | None]:
     if a not in med or b not in med:
         return f"Ratio {b} / {a} ({rule}): n/a.", None
     ours = med[b] / med[a] if med[a] else math.nan
     if cens[a] and cens[b]:
-        text = f"Ratio {b} / {a} ({rule}): **n/a**, neither converged within its budget"
+        if all_cens is None or (all_cens.get(a, True) and all_cens.get(b, True)):
+            text = f"Ratio {b} / {a} ({rule}): **n/a**, neither converged within its budget"
+        else:  # some runs met the rule, but fewer than half of each method's
+            text = (f"Ratio {b} / {a} ({rule}): **n/a**, both medians censored (most runs "
+                    "never met the rule within their budget)")
         value = None
     elif cens[a]:
         text, value = f"Ratio {b} / {a} ({rule}): **<= {ours:.2f}** ({a} censored)", ours
@@ -317,6 +322,7 @@ def _comparison(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
         "|---|---|---|---|---|---|---|---|---|"]
     med: dict[str, dict[str, float]] = {"train": {}, "eval": {}}
     cens: dict[str, dict[str, bool]] = {"train": {}, "eval": {}}
+    all_cens: dict[str, dict[str, bool]] = {"train": {}, "eval": {}}
     for m in comp.methods:
         stats = stats_by_stage[m]
         conv = summarize([s["conv"] for s in stats])
@@ -360,6 +366,7 @@ def _comparison(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
             if c["median"] is not None:
                 med[rule][m] = c["median"]
                 cens[rule][m] = bool(c["median_censored"])
+                all_cens[rule][m] = c["censored"] == c["n"]
         record["methods"][m] = dict(
             convergence=conv, eval_convergence=econv, convergence_incl_parents=conv_total,
             eval_convergence_incl_parents=econv_total,
@@ -382,7 +389,8 @@ def _comparison(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
         record["paper_ratio"] = comp.paper[b] / comp.paper[a] \
             if a in comp.paper and b in comp.paper and comp.paper[a] else None
         for rule, label in (("train", "training-SR e*"), ("eval", "greedy-evaluation e*")):
-            text, value = _ratio_text(a, b, med[rule], cens[rule], comp, label)
+            text, value = _ratio_text(a, b, med[rule], cens[rule], comp, label,
+                                      all_cens[rule])
             lines += [text, ""]
             record["ratio" if rule == "train" else "eval_ratio"] = value
         for rule, key, label in (("train", "conv", "training-SR rule"),

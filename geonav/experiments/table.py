@@ -83,7 +83,9 @@ def _ratio(a: str, b: str, ca: dict[str, Any] | None, cb: dict[str, Any] | None)
     value = cb["median"] / ca["median"]
     ea, eb = bool(ca.get("median_censored")), bool(cb.get("median_censored"))
     if ea and eb:
-        return f"n/a, neither converged {ranges}"
+        if ca.get("censored") == ca["n"] and cb.get("censored") == cb["n"]:
+            return f"n/a, neither converged {ranges}"
+        return f"n/a, both medians censored {ranges}"
     prefix = "<= " if ea else ">= " if eb else ""
     return f"{prefix}{value:.2f} {ranges}"
 
