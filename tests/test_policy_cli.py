@@ -155,3 +155,43 @@ def test_progress_is_lines_when_not_a_terminal(scene_files, tmp_path, capsys, mo
     err = capsys.readouterr().err
     assert "training: episode 3/3" in err and "\r" not in err
     assert "evaluation at episode 3: greedy SR" in err
+
+
+def test_eval_all_starts_script_evaluates_every_start_once(scene_files, tmp_path, capsys):
+    """scripts/eval_all_starts.py: each finished unit's final policy from every start of its
+    task set (the runner's evaluations sample ``eval_starts``); kept per unit, not redone."""
+    import importlib.util
+    from pathlib import Path
+
+    from geonav.env import GeoNavEnv
+    from geonav.scene import Scene
+    from geonav.tasks import TaskSet
+
+    spec = importlib.util.spec_from_file_location(
+        "eval_all_starts", Path(__file__).resolve().parents[1] / "scripts" / "eval_all_starts.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+
+    scene, tasks = scene_files
+    unit = tmp_path / "run" / "units" / "s" / "seed-0"
+    args = _parse(["train", "--algo", "a3c", "--scene", str(scene), "--tasks", str(tasks),
+                   "--workers", "0", "--out", str(unit), "--obs-size", "32", "--encoder",
+                   "random", "--no-progress", "--episodes", "2", "--seed", "0"])
+    assert args.handler(args) == 0
+    (unit / "result.json").write_text(json.dumps({
+        "checkpoint": str(unit / "checkpoints" / "final.pt"), "scene": str(scene),
+        "tasks": str(tasks)}))
+    capsys.readouterr()
+    assert script.main([str(tmp_path / "run"), "--stages", "s", "--jobs", "1"]) == 0
+    row = json.loads((unit / script.OUT).read_text())
+    env = GeoNavEnv(Scene.open(scene), TaskSet.load(tasks))
+    every = sum(len(env.start_cells(i)) for i in range(len(env.task_maps)))
+    assert row["starts"] == every > 4
+    assert 0.0 <= row["greedy_sr"] <= 1.0 and 0.0 < row["random_walk_sr"] < 1.0
+    out = capsys.readouterr().out
+    assert f"| s | {every} | {row['greedy_sr']:.2f} (seeds 0) |" in out
+    stamp = (unit / script.OUT).stat().st_mtime_ns
+    assert script.main([str(tmp_path / "run"), "--stages", "s", "--jobs", "1"]) == 0
+    assert (unit / script.OUT).stat().st_mtime_ns == stamp
+    with pytest.raises(SystemExit, match="no finished units"):
+        script.main([str(tmp_path / "run"), "--stages", "nope"])
