@@ -116,3 +116,17 @@ def test_verdict_says_no_effect_for_overlapping_ranges():
     assert verdict("scratch", a, "transfer", b).startswith("effect shown: transfer")
     censored = [ConvergenceResult(None, 600)] * 3
     assert "neither converged" in verdict("scratch", censored, "transfer", censored)
+
+
+def test_ratio_text_says_neither_converged_only_when_no_run_did():
+    """Both medians censored: the report's ratio line says "neither converged" only when no
+    run of either method met the rule, else "both medians censored"."""
+    from geonav.experiments.config import CompareSpec
+    from geonav.experiments.report import _ratio_text
+
+    comp = CompareSpec(name="c", methods=("a", "b"))
+    med, cens = {"a": 600.0, "b": 600.0}, {"a": True, "b": True}
+    text, value = _ratio_text("a", "b", med, cens, comp, "rule", {"a": True, "b": True})
+    assert "neither converged" in text and value is None
+    text, value = _ratio_text("a", "b", med, cens, comp, "rule", {"a": False, "b": True})
+    assert "both medians censored" in text and "neither" not in text and value is None
