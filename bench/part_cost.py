@@ -21,20 +21,24 @@ import csv
 from pathlib import Path
 
 
-def unit_cost(unit: Path) -> tuple[int, int, float]:
-    """(episodes, env steps, training wall seconds) of one unit folder."""
+def unit_cost(unit: Path, window: int = 500) -> tuple[int, int, float, float | None]:
+    """(episodes, env steps, training wall seconds, training SR over the last ``window``
+    episodes of its last metrics file) of one unit folder."""
     episodes = steps = 0
     wall = 0.0
+    last_sr = None
     for m in sorted(unit.rglob("metrics.csv")):
         with m.open(newline="") as f:
             rows = list(csv.DictReader(f))
         if not rows:
             continue
         last = rows[-1]
+        tail = rows[-window:]
+        last_sr = sum(int(r["success"]) for r in tail) / len(tail)
         episodes += len(rows)
         steps += int(last["env_steps"])
         wall += float(last["elapsed_s"])
-    return episodes, steps, wall
+    return episodes, steps, wall, last_sr
 
 
 def parse_rates(text: str | None, stages: list[str]) -> dict[str, float]:
@@ -61,25 +65,28 @@ def main() -> None:
                     help="env steps per CPU-second of one process, for the bound: a number "
                          "or STAGE=RATE pairs separated by commas")
     ap.add_argument("--cores", type=int, default=2)
+    ap.add_argument("--window", type=int, default=500,
+                    help="episodes of the final training SR column (the rule's W)")
     args = ap.parse_args()
 
     stages = args.stages.split(",")
     rates = parse_rates(args.rate, stages)
     total_steps, total_wall, bound = 0, 0.0, 0.0
-    print("| stage | seed | episodes (metrics rows) | env steps | training wall s | steps/s |")
-    print("|---|---|---|---|---|---|")
+    print("| stage | seed | episodes (metrics rows) | env steps | training wall s | steps/s | "
+          f"training SR, last {args.window} |")
+    print("|---|---|---|---|---|---|---|")
     for stage in stages:
         folder = args.run / "units" / stage
         if not folder.is_dir():
             raise SystemExit(f"no units for stage {stage!r} under {folder}")
         for unit in sorted(folder.glob("seed-*"), key=lambda p: int(p.name[5:])):
-            ep, st, wall = unit_cost(unit)
+            ep, st, wall, sr = unit_cost(unit, args.window)
             total_steps += st
             total_wall += wall
             if rates:
                 bound += st / (rates[stage] * args.cores)
             print(f"| {stage} | {unit.name[5:]} | {ep:,} | {st:,} | {wall:,.0f} | "
-                  f"{st / max(wall, 1e-9):,.0f} |")
+                  f"{st / max(wall, 1e-9):,.0f} | {'n/a' if sr is None else f'{sr:.3f}'} |")
     print(f"\ntotal: {total_steps:,} env steps, {total_wall:,.0f} s of training wall time "
           f"summed ({total_wall / 3600:.2f} h; {total_wall / 3600 / args.cores:.2f} h on "
           f"{args.cores} cores if perfectly balanced)")
