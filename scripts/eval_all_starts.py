@@ -82,6 +82,11 @@ def main(argv: list[str] | None = None) -> int:
         found = [p for p in found if (p / "result.json").exists()]
         if not found:
             raise SystemExit(f"no finished units of stage {stage!r} under {folder}")
+        if json.loads((found[0] / "result.json").read_text()).get("mode") == "curriculum":
+            raise SystemExit(f"stage {stage!r} is a curriculum: its task set holds every "
+                             "level's altitude, so evaluate its final policy on the last "
+                             "level's task set with `geonav eval CKPT --scene S --tasks T "
+                             "--max-starts N`")
         units[stage] = found
     todo = [str(p) for ps in units.values() for p in ps if not (p / OUT).exists()]
     if todo:

@@ -195,3 +195,8 @@ def test_eval_all_starts_script_evaluates_every_start_once(scene_files, tmp_path
     assert (unit / script.OUT).stat().st_mtime_ns == stamp
     with pytest.raises(SystemExit, match="no finished units"):
         script.main([str(tmp_path / "run"), "--stages", "nope"])
+    cur = tmp_path / "run" / "units" / "c" / "seed-0"
+    cur.mkdir(parents=True)
+    (cur / "result.json").write_text(json.dumps({"mode": "curriculum"}))
+    with pytest.raises(SystemExit, match="is a curriculum"):
+        script.main([str(tmp_path / "run"), "--stages", "c"])
