@@ -33,26 +33,18 @@ def evaluate_unit(unit: str) -> dict[str, Any]:
     """Evaluate one unit's final checkpoint from every start; writes and returns the row."""
     import torch
 
-    from geonav.difficulty import env_difficulty
-    from geonav.policy.checkpoint import check_compatible, load_checkpoint
-    from geonav.policy.envs import EnvFactory
-    from geonav.policy.evaluation import evaluate_both
+    from geonav.policy.evaluation import evaluate_checkpoint
 
     torch.set_num_threads(1)
     folder = Path(unit)
     result = json.loads((folder / "result.json").read_text())
-    ckpt = load_checkpoint(result["checkpoint"])
-    env = EnvFactory(result["scene"], result["tasks"], None,
-                     int(ckpt.meta["obs_size_px"]), None)()
-    check_compatible(ckpt.meta, env, path=ckpt.path)
-    res = evaluate_both(ckpt.build_model(), env, frozen=ckpt.build_encoder(),
-                        max_starts=ALL, seed=0)
-    row = res["row"]
-    chance = env_difficulty(env)
-    out = {"checkpoint": str(ckpt.path), "starts": res["starts"],
-           "greedy_sr": row["greedy_sr"], "greedy_spl": row["greedy_spl"],
-           "sampled_sr": row["sampled_sr"], "sampled_spl": row["sampled_spl"],
-           "random_walk_sr": chance["random_walk_sr"]}
+    summary, _ = evaluate_checkpoint(result["checkpoint"], result["scene"], result["tasks"],
+                                     max_starts=ALL, seed=0)
+    g, s = summary["greedy"], summary["sampled"]
+    out = {"checkpoint": summary["checkpoint"], "starts": summary["starts"],
+           "greedy_sr": g["sr"], "greedy_spl": g["spl"],
+           "sampled_sr": s["sr"], "sampled_spl": s["spl"],
+           "random_walk_sr": summary["random_walk_sr"]}
     tmp = folder / f".{OUT}.tmp"
     tmp.write_text(json.dumps(out, indent=1))
     os.replace(tmp, folder / OUT)

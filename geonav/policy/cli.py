@@ -159,32 +159,18 @@ def run_train(args: argparse.Namespace) -> int:
 
 def run_eval(args: argparse.Namespace) -> int:
     """Handler of ``geonav eval``: greedy and sampled from every start, beside chance."""
-    from geonav.difficulty import env_difficulty
-    from geonav.policy.checkpoint import check_compatible, load_checkpoint
-    from geonav.policy.evaluation import evaluate_both
+    from geonav.policy import evaluation
 
     if args.max_starts < 1:
         raise ConfigError(f"--max-starts must be >= 1, got {args.max_starts}")
-    ckpt = load_checkpoint(args.checkpoint)
-    factory = EnvFactory(str(args.scene), str(args.tasks), args.altitude,
-                         int(ckpt.meta["obs_size_px"]), args.max_steps)
-    env = factory()
-    check_compatible(ckpt.meta, env, path=ckpt.path)
-    model = ckpt.build_model()
-    res = evaluate_both(model, env, frozen=ckpt.build_encoder(), max_starts=args.max_starts,
-                        seed=args.seed)
-    chance = env_difficulty(env)
-    row = res["row"]
-    summary = {"checkpoint": str(ckpt.path), "starts": res["starts"],
-               "greedy": {k[7:]: v for k, v in row.items() if k.startswith("greedy_")},
-               "sampled": {k[8:]: v for k, v in row.items() if k.startswith("sampled_")},
-               "random_walk_sr": round(chance["random_walk_sr"], 6),
-               "blind_sr": round(chance["blind_sr"], 6),
-               "mean_shortest_path": round(chance["mean_shortest_path"], 3)}
+    summary, res = evaluation.evaluate_checkpoint(
+        args.checkpoint, args.scene, args.tasks, alt_m=args.altitude,
+        max_steps=args.max_steps, max_starts=args.max_starts, seed=args.seed)
     g, s = summary["greedy"], summary["sampled"]
     print(f"{res['starts']} starts: greedy SR {g['sr']:.3f} SPL {g['spl']:.3f} | sampled SR "
-          f"{s['sr']:.3f} SPL {s['spl']:.3f} | chance: random walk {chance['random_walk_sr']:.3f},"
-          f" best state-blind {chance['blind_sr']:.3f}", file=sys.stderr)
+          f"{s['sr']:.3f} SPL {s['spl']:.3f} | chance: random walk "
+          f"{summary['random_walk_sr']:.3f}, best state-blind {summary['blind_sr']:.3f}",
+          file=sys.stderr)
     print(json.dumps(_no_nan(summary)))
     if args.json:
         out = Path(args.json)

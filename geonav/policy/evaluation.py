@@ -203,6 +203,35 @@ _TABLES: weakref.WeakKeyDictionary[Any, dict[Any, Any]] = weakref.WeakKeyDiction
 """Per env: its view tables (images, and features per frozen encoder), built once."""
 
 
+def evaluate_checkpoint(checkpoint: str, scene: str, tasks: str, *,
+                        alt_m: float | None = None, max_steps: int | None = None,
+                        max_starts: int | None = None, seed: int = 0
+                        ) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Greedy and sampled evaluation of a checkpoint on a scene's task set, beside chance
+    (``geonav eval``). Returns (summary, the :func:`evaluate_both` result): the summary has
+    ``checkpoint``, ``starts``, ``greedy`` and ``sampled`` (sr, spl, length_ratio,
+    collisions), ``random_walk_sr``, ``blind_sr`` and ``mean_shortest_path``."""
+    from geonav.difficulty import env_difficulty
+    from geonav.policy.checkpoint import check_compatible, load_checkpoint
+    from geonav.policy.envs import EnvFactory
+
+    ckpt = load_checkpoint(checkpoint)
+    env = EnvFactory(str(scene), str(tasks), alt_m, int(ckpt.meta["obs_size_px"]),
+                     max_steps)()
+    check_compatible(ckpt.meta, env, path=ckpt.path)
+    res = evaluate_both(ckpt.build_model(), env, frozen=ckpt.build_encoder(),
+                        max_starts=max_starts, seed=seed)
+    chance = env_difficulty(env)
+    row = res["row"]
+    summary = {"checkpoint": str(ckpt.path), "starts": res["starts"],
+               "greedy": {k[7:]: v for k, v in row.items() if k.startswith("greedy_")},
+               "sampled": {k[8:]: v for k, v in row.items() if k.startswith("sampled_")},
+               "random_walk_sr": round(chance["random_walk_sr"], 6),
+               "blind_sr": round(chance["blind_sr"], 6),
+               "mean_shortest_path": round(chance["mean_shortest_path"], 3)}
+    return summary, res
+
+
 def _view_table(env: Any, frozen: FrozenEncoder | None) -> Any:
     import torch
 
