@@ -154,9 +154,11 @@ def _line_callback(base: type) -> Any:
                     f"{time.monotonic() - cb.t0:.0f} s")
 
         def on_eval(cb, row: dict[str, Any]) -> None:
+            abl = f" (view-ablated {row['ablated_sr']:.2f})" \
+                if row.get("ablated_sr") is not None else ""
             LineProgress.write(f"evaluation at episode {row['episode']}: greedy SR "
-                               f"{row['greedy_sr']:.2f}, sampled SR {row['sampled_sr']:.2f} "
-                               f"from {row['starts']} starts")
+                               f"{row['greedy_sr']:.2f}{abl}, sampled SR "
+                               f"{row['sampled_sr']:.2f} from {row['starts']} starts")
 
     return _Lines()
 

@@ -184,13 +184,18 @@ def stationary_pass_rate(criterion: ConvergenceCriterion, budget: int, p: float,
 
 
 def noise_check(criterion: ConvergenceCriterion, budget: int,
-                random_walk_sr: float | None = None, *, max_pass_rate: float = 0.05,
-                sims: int = 200, seed: int = 0) -> list[str]:
-    """Reasons a convergence rule could be met by a policy that is not improving.
+                random_walk_sr: float | None = None, *, blind_sr: float | None = None,
+                max_pass_rate: float = 0.05, sims: int = 200, seed: int = 0) -> list[str]:
+    """Reasons a convergence rule could be met by a policy that is not improving, or by
+    one that does not use the view.
 
     (a) a stationary success stream at p = ``hold`` meets the rule within ``budget``
-    with probability >= ``max_pass_rate`` (seeded simulation); (b) ``threshold`` is
-    below the task's random-walk SR plus half the gap to 1. Empty when the rule is sound.
+    with probability >= ``max_pass_rate`` (seeded simulation); (b) ``threshold`` or
+    ``eval_threshold`` is below the larger chance line of the task set, the random walk
+    or the best view-blind policy (knows the target, ignores the current view), plus
+    half its gap to 1. Empty when the rule is sound. A budget under 2 W, where the
+    training-SR rule can never be met (the smoke configs of the tests), passes (b) too:
+    such a run shows nothing either way.
     """
     reasons = []
     rate = stationary_pass_rate(criterion, budget, criterion.hold, sims, seed)
@@ -201,13 +206,23 @@ def noise_check(criterion: ConvergenceCriterion, budget: int,
             f"{criterion.threshold:g}, hold {criterion.hold:g}) within {budget} episodes in "
             f"{rate:.0%} of {sims} seeded simulations (limit {max_pass_rate:.0%}); widen the "
             "window, raise the hold or lower the budget")
-    if random_walk_sr is not None:
-        floor = random_walk_sr + (1.0 - random_walk_sr) / 2.0
+    if (random_walk_sr is not None or blind_sr is not None) and budget >= 2 * criterion.window:
+        rw = random_walk_sr if random_walk_sr is not None else 0.0
+        blind = blind_sr if blind_sr is not None else 0.0
+        chance = max(rw, blind)
+        floor = chance + (1.0 - chance) / 2.0
+        figures = ", ".join(
+            f"{label} {v:.3f}" for label, v in
+            (("random-walk success", random_walk_sr),
+             ("best view-blind success (knows the target, ignores the view)", blind_sr))
+            if v is not None)
+        hint = ("use tasks that need the view (max_blind = 0.3: interior targets)"
+                if blind >= rw else "use a harder task")
         for name, value in (("threshold", criterion.threshold),
                             ("eval_threshold", criterion.eval_threshold)):
             if value < floor - 1e-12:
                 reasons.append(
-                    f"{name} {value:g} is below the task's random-walk success "
-                    f"{random_walk_sr:.3f} plus half the gap to 1 ({floor:.3f}); raise it to "
-                    f"at least {floor:.3f} or use a harder task")
+                    f"{name} {value:g} is below the task set's chance ({figures}) plus half "
+                    f"the gap to 1 ({floor:.3f}); raise it to at least {floor:.3f} or "
+                    f"{hint}")
     return reasons

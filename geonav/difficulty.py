@@ -8,9 +8,12 @@ computes, exactly and without sampling, by dynamic programming over the lattice:
   env's start distribution (uniform over :meth:`TaskMap.start_cells`), with the env's
   move rule: a move into an obstacle or out of the region leaves the agent in place;
   reaching the target ends the episode;
-* the same for any *state-blind* stationary action distribution ``q`` (a policy that
-  ignores the image), and the best such distribution on a simplex grid: the success a
-  policy can reach by a directional bias alone;
+* the same for any stationary action distribution ``q``, and the best such distribution
+  on a simplex grid: the **view-blind** line, the success of a policy that knows the
+  task's target but ignores the current view, i.e. a directional bias alone (a target in
+  a region corner is reached by a fixed diagonal bias from every start, so its view-blind
+  success is near 1; tasks that are to show navigation by the view need it low,
+  ALGORITHMS.md (f));
 * the mean BFS shortest path from the starts.
 
 The recursion: with ``P_k(c)`` the probability of reaching the target within ``k``
@@ -106,7 +109,8 @@ def simplex_grid(grid: int) -> np.ndarray:
 
 def best_blind(tm: TaskMap, max_steps: int | None = None, grid: int = 20
                ) -> tuple[float, tuple[float, ...]]:
-    """The best state-blind policy on a simplex grid of step 1/``grid``: (success, q).
+    """The best view-blind policy (a stationary action distribution: knows the target,
+    ignores the view) on a simplex grid of step 1/``grid``: (success, q).
 
     Distributions are evaluated in chunks so memory stays under ~100 MB on large lattices.
     """
@@ -126,7 +130,8 @@ class TaskDifficulty:
     random_walk_sr: float
     """Success of a uniform random walk within max_steps, mean over the start cells."""
     blind_sr: float
-    """Success of the best state-blind action distribution (simplex grid of step 0.05)."""
+    """View-blind success: the best stationary action distribution (simplex grid of step
+    0.05), a policy that knows the target and ignores the current view."""
     blind_probs: tuple[float, ...]
     """That distribution (north, east, west, south)."""
     mean_shortest_path: float
@@ -188,7 +193,31 @@ def taskset_difficulty(ts: Any, scene: Any, blind_grid: int = 20) -> dict[str, A
     return set_difficulty([bind(t, scene, ts.camera) for t in ts.tasks], None, blind_grid)
 
 
+def blind_at_most(tm: TaskMap, limit: float, max_steps: int | None = None,
+                  grid: int = 20) -> bool:
+    """True when the task's view-blind success (:func:`best_blind` on the grid of step
+    1/``grid``) is at most ``limit``.
+
+    A coarse grid (step 1/4, 35 distributions) is tried first: its best is a lower bound of
+    the fine grid's (every coarse point lies on the fine grid when 4 divides ``grid``), so a
+    task above the limit there is refused without the full search.
+    """
+    if grid % 4 == 0:
+        coarse = np.atleast_1d(start_success(tm, max_steps, simplex_grid(4)))
+        if float(coarse.max()) > limit:
+            return False
+    return best_blind(tm, max_steps, grid)[0] <= limit
+
+
+def chance_floor(random_walk_sr: float, blind_sr: float | None = None) -> float:
+    """The lowest threshold a convergence rule may use on a task set: the larger chance
+    line (random walk, view-blind) plus half its gap to 1 (ALGORITHMS.md (f))."""
+    chance = max(random_walk_sr, blind_sr if blind_sr is not None else 0.0)
+    return chance + (1.0 - chance) / 2.0
+
+
 def describe(diff: dict[str, Any]) -> str:
     """One line for people: chance figures of a task set."""
-    return (f"random-walk success {diff['random_walk_sr']:.3f}, best state-blind "
-            f"{diff['blind_sr']:.3f}, mean shortest path {diff['mean_shortest_path']:.1f} steps")
+    return (f"random-walk success {diff['random_walk_sr']:.3f}, best view-blind (knows the "
+            f"target, ignores the view) {diff['blind_sr']:.3f}, mean shortest path "
+            f"{diff['mean_shortest_path']:.1f} steps")

@@ -443,6 +443,7 @@ def sample_meta_tasks(
     max_overlap: float = 0.5,
     min_coverage: float = DEFAULT_MIN_COVERAGE,
     max_random_walk: float | None = None,
+    max_blind: float | None = None,
 ) -> TaskSet:
     """Sample ``count`` meta-tasks: square regions of ``size_m`` at ``alt_m``.
 
@@ -453,10 +454,17 @@ def sample_meta_tasks(
     imagery (starts are held to the same). With ``max_random_walk``, a target is kept
     only when a uniform random walk succeeds from the task's starts at most that often
     (:func:`geonav.difficulty.start_success`; a task that chance solves cannot show
-    learning). Reproducible by ``seed``.
+    learning). With ``max_blind``, a target is kept only when the best *view-blind*
+    policy (a stationary action distribution: knows the target, ignores the current view)
+    succeeds at most that often, and when the task has start cells on every side of the
+    target (west, east, south and north of it): a target in a region corner, which a
+    fixed diagonal bias reaches from every start, is refused, so the kept tasks need the
+    view (ALGORITHMS.md (f); 0.3 is the default for a learning comparison). Targets are
+    drawn uniformly over the free cells either way. Reproducible by ``seed``.
     """
     camera = camera or Camera()
     _check_chance_limit(max_random_walk)
+    _check_chance_limit(max_blind, "max_blind")
     if count < 1:
         raise TaskError(f"count must be >= 1, got {count}")
     rng = np.random.default_rng(seed)
@@ -476,9 +484,7 @@ def sample_meta_tasks(
     while len(tasks) < count:
         attempts += 1
         if attempts > 200 * count:
-            chance = "" if max_random_walk is None else (
-                f" and random-walk success <= {max_random_walk:g} (more cells per region or "
-                "a smaller max_steps lower it)")
+            chance = _limits_text(max_random_walk, max_blind)
             raise TaskError(f"could only place {len(tasks)} of {count} meta-tasks with at most "
                             f"{max_overlap:.0%} overlap{chance} in scene {scene.name!r}; ask "
                             "for fewer or allow more overlap")
@@ -503,7 +509,7 @@ def sample_meta_tasks(
             tm = bind(task, scene, camera)
         except TaskError:
             continue
-        if not _chance_ok(tm, max_random_walk):
+        if not _chance_ok(tm, max_random_walk, max_blind):
             continue
         tasks.append(task)
         regions.append(region)
@@ -511,7 +517,7 @@ def sample_meta_tasks(
                    dict(sampler="meta", count=count, size_m=size_m, alt_m=alt_m, step_m=step_m,
                         seed=seed, margin_alt_m=margin_alt_m or alt_m,
                         min_coverage=min_coverage, max_overlap=max_overlap,
-                        max_random_walk=max_random_walk))
+                        max_random_walk=max_random_walk, max_blind=max_blind))
 
 
 def whole_scene_tasks(
@@ -527,6 +533,7 @@ def whole_scene_tasks(
     obstacles: ObstacleModel = ObstacleModel(),
     min_coverage: float = DEFAULT_MIN_COVERAGE,
     max_random_walk: float | None = None,
+    max_blind: float | None = None,
 ) -> TaskSet:
     """One task per altitude on the same lattice with the same target (curriculum).
 
@@ -536,10 +543,13 @@ def whole_scene_tasks(
     in its view at every altitude, and lies in the largest connected free area at
     the lowest altitude; starts are held to the same coverage. With ``max_random_walk``
     the target is redrawn until a uniform random walk succeeds at most that often at
-    every altitude (see :func:`sample_meta_tasks`).
+    every altitude, and with ``max_blind`` until the best view-blind policy succeeds at
+    most that often at every altitude with start cells on every side of the target (see
+    :func:`sample_meta_tasks`).
     """
     camera = camera or Camera()
     _check_chance_limit(max_random_walk)
+    _check_chance_limit(max_blind, "max_blind")
     margin = view_margin_m(max(alts_m), camera)
     sx0, sy0, sx1, sy1 = scene.bounds_m
     if region_m is None:
@@ -584,30 +594,61 @@ def whole_scene_tasks(
         tasks = [NavTask(f"scene@{alt:g}m", "scene", region_m, step_m, float(alt),
                          (target[0], target[1]), max_steps, obstacles, min_coverage)
                  for alt in alts_m]
-        if all(_chance_ok(bind(task, scene, camera), max_random_walk) for task in tasks):
+        if all(_chance_ok(bind(task, scene, camera), max_random_walk, max_blind)
+               for task in tasks):
             break
     else:
-        raise TaskError(f"no target of region {region_m} keeps random-walk success <= "
-                        f"{max_random_walk:g} within {max_steps} steps; use a finer lattice "
-                        "or a smaller max_steps")
+        limits = _limits_text(max_random_walk, max_blind).removeprefix(" and ")
+        raise TaskError(f"no target of region {region_m} keeps {limits} within {max_steps} "
+                        "steps; use a finer lattice or a smaller max_steps")
     return TaskSet(scene.name, scene.scene_id, tasks, camera,
                    dict(sampler="scene", alts_m=list(alts_m), step_m=step_m, seed=seed,
-                        min_coverage=min_coverage, max_random_walk=max_random_walk))
+                        min_coverage=min_coverage, max_random_walk=max_random_walk,
+                        max_blind=max_blind))
 
 
-def _check_chance_limit(limit: float | None) -> None:
+def _check_chance_limit(limit: float | None, name: str = "max_random_walk") -> None:
     if limit is not None and not 0.0 < limit <= 1.0:
-        raise TaskError(f"max_random_walk must lie in (0, 1], got {limit}")
+        raise TaskError(f"{name} must lie in (0, 1], got {limit}")
 
 
-def _chance_ok(tm: TaskMap, limit: float | None) -> bool:
-    """True when ``limit`` is None or a uniform random walk succeeds at most ``limit``."""
-    if limit is None:
+def _limits_text(max_random_walk: float | None, max_blind: float | None) -> str:
+    """' and ...' naming the chance limits a sampler could not meet (empty without any)."""
+    parts = []
+    if max_random_walk is not None:
+        parts.append(f"random-walk success <= {max_random_walk:g} (more cells per region or "
+                     "a smaller max_steps lower it)")
+    if max_blind is not None:
+        parts.append(f"view-blind success <= {max_blind:g} with start cells on every side "
+                     "of the target (more cells per region or a smaller max_steps lower it)")
+    return "".join(f" and {p}" for p in parts)
+
+
+def starts_on_every_side(tm: TaskMap) -> bool:
+    """True when the task has start cells west, east, south and north of its target (an
+    interior target, not one on the region's edge or in its corner)."""
+    starts = tm.start_cells()
+    if not starts:
+        return False
+    xs, ys = np.array(starts).T
+    tx, ty = tm.task.target_cell
+    return bool((xs < tx).any() and (xs > tx).any() and (ys < ty).any() and (ys > ty).any())
+
+
+def _chance_ok(tm: TaskMap, limit: float | None, max_blind: float | None = None) -> bool:
+    """True when chance stays within the limits: a uniform random walk succeeds at most
+    ``limit`` (None: any) and the best view-blind policy at most ``max_blind`` (None: any),
+    with start cells on every side of the target."""
+    if limit is None and max_blind is None:
         return True
-    from geonav.difficulty import start_success
+    from geonav.difficulty import blind_at_most, start_success
 
     try:
-        return float(start_success(tm)) <= limit
+        if limit is not None and float(start_success(tm)) > limit:
+            return False
+        if max_blind is not None:
+            return starts_on_every_side(tm) and blind_at_most(tm, max_blind)
+        return True
     except TaskError:  # no start cell within the cap
         return False
 

@@ -14,6 +14,16 @@ def _fraction(text: str) -> float:
     return value
 
 
+def _limit(text: str) -> float | None:
+    """A chance limit in (0, 1], or 'none' for no limit."""
+    if text.strip().lower() == "none":
+        return None
+    value = positive_float(text)
+    if value > 1:
+        raise argparse.ArgumentTypeError(f"{text!r} must be within (0, 1] or 'none'")
+    return value
+
+
 def add_parser(sub: argparse._SubParsersAction) -> None:
     tasks = sub.add_parser("tasks", help="make navigation task sets")
     tsub = tasks.add_subparsers(dest="tasks_command", metavar="TASKS_COMMAND")
@@ -40,6 +50,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--min-coverage", type=_fraction, default=0.99, metavar="FRACTION",
                    help="least fraction of valid imagery in the view of a target or start "
                    "(default 0.99)")
+    p.add_argument("--max-blind", type=_limit, default=0.3, metavar="SR",
+                   help="keep only targets whose best view-blind policy (knows the target, "
+                   "ignores the view: a fixed action bias) succeeds at most SR of the time, "
+                   "with starts on every side of the target, so the tasks need the view "
+                   "(default 0.3; 'none' keeps any target, e.g. corner targets)")
+    p.add_argument("--max-random-walk", type=_limit, default=None, metavar="SR",
+                   help="keep only targets a uniform random walk reaches at most SR of the "
+                   "time (default none)")
     p.add_argument("--seed", type=nonneg_int, default=0)
     p.add_argument("-o", "--out", required=True, help="task set JSON to write")
     p.set_defaults(handler=run_make)
@@ -55,12 +73,14 @@ def run_make(args: argparse.Namespace) -> int:
     if args.kind == "meta":
         ts = sample_meta_tasks(scene, args.count, size_m=args.size or 150.0, alt_m=args.alt,
                                step_m=args.step, max_steps=args.max_steps or 70, seed=args.seed,
-                               camera=camera, min_coverage=args.min_coverage)
+                               camera=camera, min_coverage=args.min_coverage,
+                               max_random_walk=args.max_random_walk, max_blind=args.max_blind)
     else:
         alts = list(args.alts)
         ts = whole_scene_tasks(scene, alts, step_m=args.step, max_steps=args.max_steps or 120,
                                seed=args.seed, size_m=args.size, camera=camera,
-                               min_coverage=args.min_coverage)
+                               min_coverage=args.min_coverage,
+                               max_random_walk=args.max_random_walk, max_blind=args.max_blind)
     from geonav.difficulty import describe, taskset_difficulty
 
     ts.meta["difficulty"] = diff = taskset_difficulty(ts, scene)

@@ -44,6 +44,7 @@ def evaluate_unit(unit: str) -> dict[str, Any]:
     out = {"checkpoint": summary["checkpoint"], "starts": summary["starts"],
            "greedy_sr": g["sr"], "greedy_spl": g["spl"],
            "sampled_sr": s["sr"], "sampled_spl": s["spl"],
+           "ablated_sr": (summary.get("ablated") or {}).get("sr"),
            "random_walk_sr": summary["random_walk_sr"]}
     tmp = folder / f".{OUT}.tmp"
     tmp.write_text(json.dumps(out, indent=1))

@@ -130,3 +130,25 @@ def test_ratio_text_says_neither_converged_only_when_no_run_did():
     assert "neither converged" in text and value is None
     text, value = _ratio_text("a", "b", med, cens, comp, "rule", {"a": False, "b": True})
     assert "both medians censored" in text and "neither" not in text and value is None
+
+
+def test_noise_check_refuses_a_rule_below_the_view_blind_line():
+    """Issue 29: the quick's corner-target tasks (random walk 0.041, view-blind 0.996, from
+    docs/results/quick/summary.json) are solved by a fixed bias; 0.95 cannot show the view."""
+    import json
+
+    from geonav.convergence import noise_check
+    from geonav.errors import ConfigError
+    from geonav.experiments.config import check_noise, load_config
+
+    old = json.loads(Path("docs/results/quick/summary.json").read_text())["comparisons"][0]
+    rule = ConvergenceCriterion(100, 0.95, 0.80)
+    reasons = noise_check(rule, 2000, old["random_walk_sr"], blind_sr=old["blind_sr"])
+    assert len(reasons) == 2 and all("view-blind" in r and "0.998" in r for r in reasons)
+    assert noise_check(rule, 2000, old["random_walk_sr"]) == []   # the old check passed it
+    assert noise_check(rule, 2000, 0.04, blind_sr=0.3) == []       # 0.95 >= 0.65
+    cfg = load_config("configs/quick.toml")
+    chance = {k: {"random_walk_sr": old["random_walk_sr"], "blind_sr": old["blind_sr"]}
+              for k in cfg.tasks}
+    with pytest.raises(ConfigError, match="view-blind success .* 0.996"):
+        check_noise(cfg, chance)

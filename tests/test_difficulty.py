@@ -92,3 +92,40 @@ def test_env_difficulty_matches_the_quick_style_task(tiny_tasks, scene):
     tm = env.unwrapped.task_maps[0]
     assert d["random_walk_sr"] == pytest.approx(start_success(tm, env.unwrapped.max_steps_of(0)))
     assert set(d["tasks"]) == {"tiny"}
+
+
+# -- issue 29: the view-blind line ----------------------------------------------------------
+
+def test_view_blind_dp_equals_monte_carlo_of_the_best_fixed_distribution():
+    rng = np.random.default_rng(3)
+    blocked = np.zeros((5, 5), bool)
+    blocked[1, 1:3] = True
+    tm = _task_map(blocked, (3, 1), 12)
+    sr, q = best_blind(tm)
+    starts = tm.start_cells()
+    n = 600
+    est = np.mean([_monte_carlo(blocked, (3, 1), s, 12, n, rng, q) for s in starts])
+    se = np.sqrt(est * (1 - est) / (n * len(starts)))
+    assert abs(sr - est) < 4 * max(se, 1e-3), (sr, est)
+    # no other fixed distribution (MC) beats it by more than noise
+    for probs in [(0.25,) * 4, (0.1, 0.6, 0.1, 0.2), (0.4, 0.4, 0.1, 0.1)]:
+        other = np.mean([_monte_carlo(blocked, (3, 1), s, 12, 300, rng, probs)
+                         for s in starts])
+        assert other <= sr + 0.03
+
+
+def test_corner_target_is_solved_blind_centre_target_is_not():
+    from geonav.difficulty import blind_at_most, chance_floor
+
+    blocked = np.zeros((15, 15), bool)
+    corner = task_difficulty(_task_map(blocked, (14, 0), 40))
+    centre = task_difficulty(_task_map(blocked, (7, 7), 40))
+    assert corner.blind_sr > 0.97          # a fixed diagonal bias (east + south) works
+    assert sorted(corner.blind_probs)[-2:] == [0.5, 0.5]
+    assert centre.blind_sr < 0.3 < corner.blind_sr
+    assert centre.random_walk_sr < centre.blind_sr
+    tm = _task_map(blocked, (7, 7), 40)
+    assert blind_at_most(tm, 0.3) and not blind_at_most(_task_map(blocked, (14, 0), 40), 0.3)
+    assert blind_at_most(tm, centre.blind_sr) and not blind_at_most(tm, centre.blind_sr - 1e-6)
+    assert chance_floor(0.041, 0.996) == pytest.approx(0.998)
+    assert chance_floor(0.3, None) == pytest.approx(0.65)

@@ -347,10 +347,17 @@ def test_shipped_configs_parse():
 
 def test_paper_tasks_are_not_solved_by_chance():
     """Issue 12: every task set of the paper protocol keeps only targets from which a
-    random walk succeeds at most 5 % of the time (the sampler enforces the cap)."""
+    random walk succeeds at most 5 % of the time (the sampler enforces the cap), or
+    (issue 29, the *_view task sets) only targets that need the view: view-blind <= 0.3."""
     cfg = load_config(Path(__file__).resolve().parent.parent / "configs" / "paper.toml")
     for key, spec in cfg.tasks.items():
-        assert spec.max_random_walk is not None and spec.max_random_walk <= 0.05, key
+        if key.endswith("_view"):
+            assert spec.max_blind is not None and spec.max_blind <= 0.3, key
+        else:
+            assert spec.max_random_walk is not None and spec.max_random_walk <= 0.05, key
+    quick = load_config(Path(__file__).resolve().parent.parent / "configs" / "quick.toml")
+    for key, spec in quick.tasks.items():
+        assert spec.max_blind is not None and spec.max_blind <= 0.3, key
 
 
 def test_a_part_makes_only_its_inputs_and_resumes_past_edits_elsewhere(tmp_path):
@@ -516,3 +523,55 @@ def test_count_parents_compares_totals_by_both_rules(tmp_path):
         "; IQM 50 (95% CI 50-50)", "")
     row = comparison_row(root, summary, comp, tmp_path)
     assert "(transfer 550-550 vs scratch 250-250)" in row and "not reproduced" in row
+
+
+def test_report_shows_view_ablated_sr_and_tolerates_runs_without_it(tmp_path):
+    """The view-ablated greedy SR (final, zero-shot, curves) where the runs have it; "n/a"
+    for runs evaluated before it existed (no ablated_sr in eval.csv or result.json)."""
+    import numpy as np
+    import tomllib
+
+    from geonav.experiments.report import read_eval_column, write_report
+
+    cfg = parse_config(tomllib.loads(TINY.replace("EPISODES", "150")), "tiny.toml")
+    root = tmp_path / "tiny"
+    chance = {"random_walk_sr": 0.04, "blind_sr": 0.3, "mean_shortest_path": 5.0}
+    for seed in (0, 1):
+        _fake_unit(root, "pre", seed, [1] * 100, [])
+        _fake_unit(root, "transfer", seed, [1] * 100, [(50, 0.5), (100, 0.8)])  # old files
+        _fake_unit(root, "scratch", seed, [1] * 100, [])
+        unit = root / "units"
+        (unit / "scratch" / f"seed-{seed}" / "eval.csv").write_text(
+            "episode,greedy_sr,ablated_sr\n50,0.5,0.2\n100,0.9,0.3\n")
+        (unit / "scratch" / f"seed-{seed}" / "result.json").write_text(json.dumps(
+            {"episodes": 100, "eval": {"greedy_sr": 0.9, "ablated_sr": 0.3 + 0.2 * seed,
+                                       **chance}}))
+        zero_shot = {"greedy_sr": 0.6, **({"ablated_sr": 0.1} if seed == 0 else {})}
+        (unit / "transfer" / f"seed-{seed}" / "result.json").write_text(json.dumps(
+            {"episodes": 100, "eval": {"greedy_sr": 0.8, "zero_shot": zero_shot}}))
+        (unit / "pre" / f"seed-{seed}" / "result.json").write_text(json.dumps(
+            {"episodes": 100, "eval": {"greedy_sr": 0.7, "ablated_sr": 0.2}}))
+    assert np.isnan(read_eval_column(root / "units/transfer/seed-0/eval.csv",
+                                     "ablated_sr")).all()
+    summary = write_report(cfg, root, ["pre", "transfer", "scratch"], {}, {}, {})
+    methods = summary["comparisons"][0]["methods"]
+    assert methods["scratch"]["final_ablated_sr"] == pytest.approx(0.4)
+    assert methods["scratch"]["zero_shot_ablated_sr"] is None
+    assert methods["transfer"]["final_ablated_sr"] is None
+    assert methods["transfer"]["zero_shot_ablated_sr"] == pytest.approx(0.1)
+    assert summary["stages"]["pre"]["final_ablated_sr"] == pytest.approx(0.2)
+    assert summary["stages"]["pre"]["zero_shot_ablated_sr"] == pytest.approx(0.1)
+    report = (root / "report.md").read_text()
+    assert "final view-ablated greedy SR" in report and "view-blind line" in report
+    assert "best view-blind action bias (knows the target, ignores the view) 0.300" in report
+    assert "state-blind" not in report
+    rows: dict[str, str] = {}
+    for line in report.splitlines():  # the comparison table's rows come before ## Stages'
+        if line.startswith(("| scratch |", "| transfer |")):
+            rows.setdefault(line.split(" | ")[0], line)
+    assert "| 0.90 / n/a | n/a / n/a | 0.40 | n/a |" in rows["| scratch"]
+    assert "| 0.80 / n/a | n/a / n/a | n/a | 0.60 [0.60-0.60] (view-ablated 0.10) |" \
+        in rows["| transfer"]
+    assert "view-ablated 0.20; random walk" in report
+    assert "on the compared task: 0.60 [0.60-0.60], view-ablated 0.10 (that" in report
+    assert (root / "curves-transfer-vs-scratch.png").stat().st_size > 10_000

@@ -26,8 +26,11 @@ def _conv(values, censored=0, median_censored=False):
             "max": max(values), "censored": censored, "median_censored": median_censored}
 
 
+CONVERGENCE = {"window": 500, "threshold": 0.95, "hold": 0.9, "eval_threshold": 0.95}
+
+
 def _summary(verdict, eval_verdict, paper=None, scratch=(900, 1000, 1200),
-             transfer=(100, 120, 150), **extra):
+             transfer=(100, 120, 150), convergence=CONVERGENCE, **extra):
     comp = {"name": "transfer A to B", "part": "transfer", "order": ["scratch", "transfer"],
             "methods": {"transfer": {"convergence": _conv(transfer),
                                      "eval_convergence": _conv(transfer)},
@@ -37,7 +40,7 @@ def _summary(verdict, eval_verdict, paper=None, scratch=(900, 1000, 1200),
             "compute_s": 600.0, "compute_units": 9, **extra}
     if paper is not None:
         comp["paper"] = paper
-    return {"name": "x", "comparisons": [comp]}
+    return {"name": "x", "convergence": convergence, "comparisons": [comp]}
 
 
 SHOWN = ("effect shown: transfer converges in fewer episodes than scratch (seed ranges "
@@ -63,10 +66,11 @@ def test_row_has_claim_ratios_ranges_verdict_and_compute(results):
     assert table.update_readme(root, readme) is True
     text = readme.read_text()
     assert text.startswith("# t\n\nintro\n\n") and text.endswith(f"{table.END}\n\nafter\n")
-    assert "old" not in text
+    assert "\nold\n" not in text  # the old block is gone
     row = next(ln for ln in text.splitlines() if ln.startswith("| [transfer A to B]"))
+    assert "| chance: random walk / view-blind |" in text
     assert row == ("| [transfer A to B](docs/results/part5/report.md) (`part5`) | "
-                   "0.04 (transfer 2000 vs scratch 50000) | "
+                   "0.04 (transfer 2000 vs scratch 50000) | n/a | "
                    "0.12 (transfer 100-150 vs scratch 900-1200) | "
                    "0.12 (transfer 100-150 vs scratch 900-1200) | direction reproduced, size "
                    "not (ours 0.12, 0.12 vs the paper's 0.04) | "
@@ -152,7 +156,7 @@ def test_old_summaries_and_errors(tmp_path):
     (tmp_path / "a" / "summary.json").write_text(json.dumps(s))
     text = table.render_table(tmp_path)
     # the method order falls back to the methods' order; paper figures are said missing
-    assert "n/a (not in this summary) | 8.33 (scratch 900-1200 vs transfer 100-150)" in text
+    assert "n/a (not in this summary) | n/a | 8.33 (scratch 900-1200 vs transfer 100-150)" in text
     assert ">= 3.0 min over 2 units (compared stages only" in text
     with pytest.raises(ConfigError, match="no \\*/summary.json"):
         table.render_table(tmp_path / "a")
@@ -196,3 +200,84 @@ def test_an_effect_by_one_rule_without_a_paper_figure_says_which_rule():
     assert combined_verdict({"training-SR": "effect shown (a faster)",
                              "greedy-evaluation": "effect shown (a faster)"}) == \
         "effect shown (a faster) (no paper figure)"
+
+
+def _render_one(tmp_path, summary):
+    (tmp_path / "r" / "a").mkdir(parents=True)
+    (tmp_path / "r" / "a" / "summary.json").write_text(json.dumps(summary))
+    text = table.render_table(tmp_path / "r", tmp_path)
+    return next(ln for ln in text.splitlines() if ln.startswith("| [transfer A to B]"))
+
+
+def test_view_blind_floor_is_chance_plus_half_the_gap():
+    assert table.view_blind_floor(0.04, 0.996) == pytest.approx(0.998)
+    assert table.view_blind_floor(0.5, 0.3) == pytest.approx(0.75)  # the random walk's
+    assert table.view_blind_floor(None, 0.3) == pytest.approx(0.65)
+    assert table.view_blind_floor(None, None) is None
+
+
+def test_a_task_the_view_blind_policy_solves_marks_the_verdict(tmp_path):
+    """blind 0.996: floor 0.998 lies above both thresholds (0.95), so no verdict on this
+    task can show navigation by the view."""
+    s = _summary(SHOWN, SHOWN, {"transfer": 120, "scratch": 1000}, random_walk_sr=0.0413,
+                 blind_sr=0.9957)
+    assert table.solvable_without_view(s, s["comparisons"][0]) == (
+        "task solvable without the view (view-blind 0.996; threshold 0.95 < 0.998)")
+    row = _render_one(tmp_path, s)
+    assert "| 0.041 / 0.996 |" in row
+    assert ("| task solvable without the view (view-blind 0.996; threshold 0.95 < 0.998): "
+            "reproduced |") in row
+
+
+def test_a_task_with_a_weak_view_blind_policy_is_not_marked(tmp_path):
+    s = _summary(SHOWN, SHOWN, {"transfer": 120, "scratch": 1000}, random_walk_sr=0.04,
+                 blind_sr=0.3)
+    assert table.solvable_without_view(s, s["comparisons"][0]) is None
+    row = _render_one(tmp_path, s)
+    assert "| 0.040 / 0.300 | 0.12 (" in row and "| reproduced |" in row
+    assert "without the view" not in row
+
+
+def test_only_the_rule_whose_threshold_is_below_the_floor_is_named():
+    conv = dict(CONVERGENCE, threshold=0.8, eval_threshold=0.99)  # floor 0.85
+    s = _summary(SHOWN, SHOWN, convergence=conv, random_walk_sr=0.04, blind_sr=0.7)
+    assert table.solvable_without_view(s, s["comparisons"][0]) == (
+        "task solvable without the view by the training-SR rule (view-blind 0.700; "
+        "threshold 0.8 < 0.850)")
+    conv = dict(CONVERGENCE, threshold=0.8, eval_threshold=0.82)
+    s = _summary(SHOWN, SHOWN, convergence=conv, random_walk_sr=0.04, blind_sr=0.7)
+    assert table.solvable_without_view(s, s["comparisons"][0]) == (
+        "task solvable without the view (view-blind 0.700; threshold 0.8, eval_threshold "
+        "0.82 < 0.850)")
+    # a threshold at the floor is not below it
+    conv = dict(CONVERGENCE, threshold=0.85, eval_threshold=0.85)
+    s = _summary(SHOWN, SHOWN, convergence=conv, random_walk_sr=0.04, blind_sr=0.7)
+    assert table.solvable_without_view(s, s["comparisons"][0]) is None
+
+
+def test_a_summary_without_the_chance_figures_says_na_and_has_no_mark(tmp_path):
+    s = _summary(SHOWN, SHOWN, {"transfer": 120, "scratch": 1000})
+    assert table.solvable_without_view(s, s["comparisons"][0]) is None
+    row = _render_one(tmp_path, s)
+    assert "| 0.12 (transfer 120 vs scratch 1000) | n/a | 0.12 (" in row
+    assert row.endswith("| reproduced | 10.0 min over 9 units (training wall time, summed) |")
+    # the random walk alone (a summary from before blind_sr; NaN reads as missing)
+    s = _summary(SHOWN, SHOWN, random_walk_sr=0.041, blind_sr=float("nan"))
+    assert table.chance_cell(s["comparisons"][0]) == "0.041 / n/a"
+    assert table.solvable_without_view(s, s["comparisons"][0]) is None
+    # no convergence thresholds in the summary: nothing to judge
+    s = _summary(SHOWN, SHOWN, convergence=None, random_walk_sr=0.04, blind_sr=0.996)
+    assert table.solvable_without_view(s, s["comparisons"][0]) is None
+
+
+def test_the_mark_keeps_update_readme_idempotent(results):
+    root, readme = results
+    (root / "part5" / "summary.json").write_text(json.dumps(
+        _summary(SHOWN, SHOWN, PAPER, random_walk_sr=0.04, blind_sr=0.996)))
+    assert table.update_readme(root, readme) is True
+    text = readme.read_text()
+    assert text.count("task solvable without the view (view-blind") == 1
+    assert "| 0.040 / 0.996 |" in text
+    assert table.update_readme(root, readme) is False
+    assert table.update_readme(root, readme, check=True) is False
+    assert readme.read_text() == text

@@ -79,7 +79,8 @@ def test_tensorboard_sb3_tags_against_env_steps(tmp_path):
     for r in records:
         tb.on_episode(r)
     tb.on_eval(dict(episode=5, env_steps=records[-1]["env_steps"], starts=8, greedy_sr=0.75,
-                    greedy_spl=0.6, sampled_sr=0.5, sampled_spl=float("nan")))
+                    greedy_spl=0.6, sampled_sr=0.5, sampled_spl=float("nan"),
+                    ablated_sr=0.25))
     tb.on_train_end(None)
     s = _scalars(tmp_path / "tb")
     steps = [r["env_steps"] for r in records]
@@ -90,6 +91,8 @@ def test_tensorboard_sb3_tags_against_env_steps(tmp_path):
     assert s["train/entropy_loss"][0][1] == pytest.approx(-1.3)  # SB3: minus the entropy
     assert s["eval/success_rate"] == [(steps[-1], 0.75)]
     assert s["eval/sampled_success_rate"] == [(steps[-1], 0.5)]
+    assert s["eval/ablated_success_rate"] == [(steps[-1], 0.25)]
+    assert "eval/ablated_spl" not in s  # not in the row: nothing written
     assert "eval/sampled_spl" not in s  # NaN is not plotted
     assert {"train/policy_loss", "train/value_loss", "eval/spl", "time/episodes"} <= set(s)
     assert not [t for t in s if t.startswith("episode/")]

@@ -41,9 +41,23 @@ def test_train_resume_and_eval(scene_files, tmp_path, capsys):
                  "checkpoints/latest.pt"):
         assert (run / name).is_file(), name
 
+    # an eval.csv from before the view-ablated columns: the resumed run appends in its columns
+    import csv
+
+    with open(run / "eval.csv", newline="") as f:
+        old_rows = list(csv.DictReader(f))
+    assert old_rows and "ablated_sr" in old_rows[0]
+    old_fields = [k for k in old_rows[0] if not k.startswith("ablated_")]
+    with open(run / "eval.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=old_fields, extrasaction="ignore")
+        w.writeheader()
+        w.writerows(old_rows)
     args = _parse(base + ["--episodes", "5", "--resume", str(run / "checkpoints/latest.pt")])
     assert args.handler(args) == 0
     assert len((run / "metrics.csv").read_text().splitlines()) == 1 + 5
+    with open(run / "eval.csv", newline="") as f:
+        resumed = list(csv.DictReader(f))
+    assert list(resumed[-1]) == old_fields and float(resumed[-1]["eval_s"]) >= 0.0
 
     out = tmp_path / "eval.json"
     args = _parse(["eval", str(run / "checkpoints/final.pt"), "--scene", str(scene),
@@ -54,11 +68,13 @@ def test_train_resume_and_eval(scene_files, tmp_path, capsys):
     captured = capsys.readouterr()
     summary = json.loads(captured.out.strip().splitlines()[-1])
     assert summary["starts"] == 4
-    for mode in ("greedy", "sampled"):
+    for mode in ("greedy", "sampled", "ablated"):
         assert 0.0 <= summary[mode]["sr"] <= 1.0 and 0.0 <= summary[mode]["spl"] <= 1.0
     assert 0.0 < summary["random_walk_sr"] < 1.0 and "random walk" in captured.err
+    assert "view-ablated (current view replaced by another cell's): SR" in captured.err
+    assert "best view-blind (knows the target, ignores the view)" in captured.err
     per = json.loads(out.read_text())["per_episode"]
-    assert len(per["greedy"]) == 4 and len(per["sampled"]) == 4
+    assert len(per["greedy"]) == 4 and len(per["sampled"]) == 4 and len(per["ablated"]) == 4
     # every training run ends with a greedy + sampled evaluation row in eval.csv
     rows = (run / "eval.csv").read_text().splitlines()
     assert rows[0].startswith("episode,env_steps") and rows[-1].startswith("5,")

@@ -194,3 +194,31 @@ def test_tasks_keep_only_targets_that_chance_does_not_solve():
                           max_random_walk=0.01)
     with pytest.raises(TaskError, match="max_random_walk must lie"):
         sample_meta_tasks(s, 1, max_random_walk=0.0)
+
+
+def test_tasks_that_need_the_view_keep_view_blind_low_and_targets_inside():
+    from geonav.difficulty import best_blind
+    from geonav.tasks import starts_on_every_side
+
+    s = textured_scene(1000.0, 1.0, seed=4)
+    cam = Camera(32, 45.0)
+    kw = dict(size_m=150, alt_m=300, step_m=10, max_steps=30, camera=cam)
+    corner = sample_meta_tasks(s, 4, seed=2, max_random_walk=0.05, **kw)
+    capped = sample_meta_tasks(s, 4, seed=2, max_blind=0.3, **kw)
+    blind = [best_blind(bind(t, s, cam))[0] for t in capped.tasks]
+    assert max(blind) <= 0.3 and capped.meta["max_blind"] == 0.3
+    assert all(starts_on_every_side(bind(t, s, cam)) for t in capped.tasks)
+    for t in capped.tasks:  # never on the region's edge
+        nx, ny = t.lattice.shape
+        assert 0 < t.target_cell[0] < nx - 1 and 0 < t.target_cell[1] < ny - 1
+    # the random-walk cap alone picks targets a fixed bias reaches (corners, edges)
+    assert max(best_blind(bind(t, s, cam))[0] for t in corner.tasks) > 0.3
+    scene_ts = whole_scene_tasks(textured_scene(500.0, 0.5, seed=5), (75, 45), step_m=25,
+                                 max_steps=40, seed=1, max_blind=0.3)
+    assert scene_ts.meta["max_blind"] == 0.3
+    s5 = textured_scene(500.0, 0.5, seed=5)
+    assert all(best_blind(bind(t, s5))[0] <= 0.3 for t in scene_ts.tasks)
+    with pytest.raises(TaskError, match="view-blind success <= 0.01"):
+        sample_meta_tasks(s, 2, seed=2, max_blind=0.01, **kw)
+    with pytest.raises(TaskError, match="max_blind must lie"):
+        sample_meta_tasks(s, 1, max_blind=1.5)

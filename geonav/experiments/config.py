@@ -104,6 +104,10 @@ class TaskSpec:
         max_overlap: meta-task regions overlap each other by at most this area fraction.
         max_random_walk: keep only targets from which a uniform random walk succeeds at
             most this often (per task; None: any target). Issue 12 asks for 0.05.
+        max_blind: keep only targets whose best view-blind policy (knows the target,
+            ignores the view) succeeds at most this often, with start cells on every side
+            of the target (per task; None: any target). 0.3 for a learning comparison
+            that is to show navigation by the view (issue 29).
     """
 
     name: str
@@ -122,6 +126,7 @@ class TaskSpec:
     fov_deg: float = 90.0
     max_overlap: float = 0.5
     max_random_walk: float | None = None
+    max_blind: float | None = None
 
 
 @dataclass(frozen=True)
@@ -409,22 +414,29 @@ def _check_base_loss(st: StageSpec) -> None:
                           f"'train' (batched engine), not {st.mode!r}")
 
 
-def check_noise(cfg: ExperimentConfig, random_walk_sr: dict[str, float] | None = None) -> None:
-    """Refuse a convergence rule that a policy which is not improving could meet (issue 10,
-    ALGORITHMS.md (f)): (a) for each compared stage's budget, by seeded simulation of a
-    stationary success stream at p = hold; (b) with ``random_walk_sr`` (task-set key ->
-    exact random-walk SR), thresholds below chance plus half the gap to 1."""
+def check_noise(cfg: ExperimentConfig,
+                chance: dict[str, float | dict[str, float]] | None = None) -> None:
+    """Refuse a convergence rule that a policy which is not improving, or one that ignores
+    the view, could meet (issues 10 and 29, ALGORITHMS.md (f)): (a) for each compared
+    stage's budget, by seeded simulation of a stationary success stream at p = hold;
+    (b) with ``chance`` (task-set key -> its chance figures: a dict with
+    ``random_walk_sr`` and ``blind_sr``, or a bare random-walk SR), thresholds below the
+    larger of the random walk and the best view-blind policy plus half the gap to 1."""
     from geonav.convergence import noise_check
 
     compared = {m for c in cfg.compare for m in c.methods}
-    seen: set[tuple[int, float | None]] = set()
+    seen: set[tuple[int, float | None, float | None]] = set()
     for key in sorted(compared):
         st = cfg.stages[key]
-        rw = None if random_walk_sr is None else random_walk_sr.get(st.tasks)
-        if (st.episodes, rw) in seen:
+        fig = None if chance is None else chance.get(st.tasks)
+        if isinstance(fig, dict):
+            rw, blind = fig.get("random_walk_sr"), fig.get("blind_sr")
+        else:
+            rw, blind = fig, None
+        if (st.episodes, rw, blind) in seen:
             continue
-        seen.add((st.episodes, rw))
-        reasons = noise_check(cfg.convergence, st.episodes, rw)
+        seen.add((st.episodes, rw, blind))
+        reasons = noise_check(cfg.convergence, st.episodes, rw, blind_sr=blind)
         if reasons:
             raise ConfigError(f"[convergence] cannot tell learning from noise for stage "
                               f"{key!r} (tasks {st.tasks!r}, budget {st.episodes}): "

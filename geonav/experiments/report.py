@@ -69,6 +69,21 @@ def read_evals(eval_csv: Path) -> tuple[np.ndarray, np.ndarray]:
     return np.array(ep, int), np.array(sr)
 
 
+def read_eval_column(eval_csv: Path, column: str) -> np.ndarray:
+    """One figure of a run's periodic evaluations, row by row as :func:`read_evals` reads
+    them (e.g. ``ablated_sr``, the view-ablated greedy SR); NaN where a row lacks it (files
+    written before the column existed, or an empty cell)."""
+    out: list[float] = []
+    if eval_csv.exists():
+        with open(eval_csv, newline="") as f:
+            for row in csv.DictReader(f):
+                try:
+                    out.append(float(row.get(column) or "nan"))
+                except ValueError:
+                    out.append(math.nan)
+    return np.array(out, float)
+
+
 def verdict(a: str, ra: list[ConvergenceResult | EvalConvergence], b: str,
             rb: list[ConvergenceResult | EvalConvergence]) -> str:
     """"effect shown" only when the seed ranges of e* (censored runs at their budget, a
@@ -146,7 +161,8 @@ def unit_stats(root: Path, unit: Unit, criterion: ConvergenceCriterion,
     eval_conv = eval_convergence(eval_ep, eval_sr, int(len(success)), criterion.eval_threshold)
     return dict(
         seed=unit.seed, conv=conv, eval_conv=eval_conv, eval_episodes=eval_ep,
-        eval_greedy_sr=eval_sr, episodes=int(len(success)), wall_to_convergence_s=wall_to,
+        eval_greedy_sr=eval_sr, eval_ablated_sr=read_eval_column(eval_path, "ablated_sr"),
+        episodes=int(len(success)), wall_to_convergence_s=wall_to,
         wall_total_s=float(wall[-1]) if len(wall) else None,
         auc=area_under_curve(success, criterion.window),
         length_over_shortest=ratio,
@@ -213,7 +229,12 @@ def write_report(cfg: ExperimentConfig, root: Path, stage_keys: list[str],
              f"evaluation at which greedy SR over all start cells is >= "
              f"{crit.eval_threshold:g} and stays so at the next one. The config passed the "
              "noise check (a policy that is not improving meets neither rule). A verdict says "
-             "\"effect shown\" only when the seed ranges of e* do not overlap.", ""]
+             "\"effect shown\" only when the seed ranges of e* do not overlap. The "
+             "**view-ablated** greedy SR is the same greedy evaluation with the current view "
+             "replaced, at every step, by the view of a random other cell of the same task "
+             "(target kept): a policy that navigates by the view falls toward the view-blind "
+             "line (the best policy that knows the target but ignores the view); one that "
+             "keeps its SR is not using the view.", ""]
     summary: dict[str, Any] = {"name": cfg.name, "convergence": vars(crit) if hasattr(
         crit, "__dict__") else {}, "comparisons": [], "failed": {u.key: m for u, m in
                                                                  failed.items()}}
@@ -309,17 +330,18 @@ def _comparison(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
     if chance:
         lines += [f"Chance on this task (exact, DP over the lattice): a uniform random walk "
                   f"succeeds **{chance['random_walk_sr']:.3f}** of the time from the start "
-                  f"cells, the best state-blind action bias {chance.get('blind_sr', math.nan):.3f};"
-                  f" mean shortest path {chance.get('mean_shortest_path', math.nan):.1f} steps.",
+                  f"cells, the best view-blind action bias (knows the target, ignores the view) "
+                  f"{chance.get('blind_sr', math.nan):.3f}; mean shortest path "
+                  f"{chance.get('mean_shortest_path', math.nan):.1f} steps.",
                   ""]
         record["random_walk_sr"] = chance["random_walk_sr"]
         record["blind_sr"] = chance.get("blind_sr")
     lines += [
         f"| method | e* training SR (W = {crit.window}, {crit.threshold:g} / {crit.hold:g}) | "
         f"e* greedy eval (>= {crit.eval_threshold:g} twice) | censored (train / eval) | "
-        "final greedy SR / SPL | final sampled SR / SPL | zero-shot greedy SR | "
-        "length / shortest (greedy) | wall time to e* (train) |",
-        "|---|---|---|---|---|---|---|---|---|"]
+        "final greedy SR / SPL | final sampled SR / SPL | final view-ablated greedy SR | "
+        "zero-shot greedy SR | length / shortest (greedy) | wall time to e* (train) |",
+        "|---|---|---|---|---|---|---|---|---|---|"]
     med: dict[str, dict[str, float]] = {"train": {}, "eval": {}}
     cens: dict[str, dict[str, bool]] = {"train": {}, "eval": {}}
     all_cens: dict[str, dict[str, bool]] = {"train": {}, "eval": {}}
@@ -341,8 +363,10 @@ def _comparison(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
             _median([e.get("greedy_spl") for e in ev])
         s_sr, s_spl = _median([e.get("sampled_sr", e.get("success_rate")) for e in ev]), \
             _median([e.get("sampled_spl", e.get("spl")) for e in ev])
+        a_sr = _median([e.get("ablated_sr") for e in ev])
         zs = [e["zero_shot"]["greedy_sr"] for e in ev if e.get("zero_shot")]
         zs_med = _median(zs)
+        zs_abl = _median([e["zero_shot"].get("ablated_sr") for e in ev if e.get("zero_shot")])
         ratio = _median([e.get("greedy_length_ratio") for e in ev])
         st_train = _seed_stats([s["conv"] for s in stats])
         st_eval = _seed_stats(evaluated(stats))
@@ -359,8 +383,9 @@ def _comparison(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
             f"| {m} | {cell} | {ecell} | "
             f"{conv['censored']}/{conv['n']} / "
             f"{econv['censored']}/{econv['n']} | {_f(g_sr)} / {_f(g_spl)} | "
-            f"{_f(s_sr)} / {_f(s_spl)} | "
-            f"{_f(zs_med) + (f' [{min(zs):.2f}-{max(zs):.2f}]' if zs else '')} | "
+            f"{_f(s_sr)} / {_f(s_spl)} | {_f(a_sr)} | "
+            f"{_f(zs_med) + (f' [{min(zs):.2f}-{max(zs):.2f}]' if zs else '')}"
+            f"{f' (view-ablated {zs_abl:.2f})' if zs_abl is not None else ''} | "
             f"{_f(ratio)} | {'n/a' if wall is None else f'{wall:.1f} s'} |")
         for rule, c in (("train", conv_total or conv), ("eval", econv_total or econv)):
             if c["median"] is not None:
@@ -372,7 +397,8 @@ def _comparison(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
             eval_convergence_incl_parents=econv_total,
             convergence_stats=st_train, eval_convergence_stats=st_eval,
             wall_to_convergence_s=wall, final_greedy_sr=g_sr, final_greedy_spl=g_spl,
-            final_sampled_sr=s_sr, final_sampled_spl=s_spl, zero_shot_greedy_sr=zs_med,
+            final_sampled_sr=s_sr, final_sampled_spl=s_spl, final_ablated_sr=a_sr,
+            zero_shot_greedy_sr=zs_med, zero_shot_ablated_sr=zs_abl,
             greedy_length_over_shortest=ratio,
             auc=_median([s["auc"] for s in stats]),
             in_progress=sum(s["in_progress"] for s in stats),
@@ -461,13 +487,18 @@ def _parent_sections(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
         children = [m for m in comp.methods if cfg.stages[m].init == p]
         zs = [r["eval"]["zero_shot"]["greedy_sr"] for m in children
               for r in record["methods"][m]["runs"] if r["eval"].get("zero_shot")]
+        zs_abl = _median([r["eval"]["zero_shot"].get("ablated_sr") for m in children
+                          for r in record["methods"][m]["runs"] if r["eval"].get("zero_shot")])
+        own_abl = _median([e.get("ablated_sr") for e in ev])
         lines += [f"### Starting stage `{p}` ({st.mode}, {st.algo}, tasks `{st.tasks}`)", "",
                   f"Final greedy SR over its own tasks' starts: "
                   f"{_f(_median([e.get('greedy_sr') for e in ev]))} (sampled "
-                  f"{_f(_median([e.get('sampled_sr') for e in ev]))}; random walk "
+                  f"{_f(_median([e.get('sampled_sr') for e in ev]))}; view-ablated "
+                  f"{_f(own_abl)}; random walk "
                   f"{_f(chance.get('random_walk_sr'), '.3f')}). Zero-shot greedy SR of its "
                   f"final policy on the compared task: "
                   f"{_f(_median(zs))}" + (f" [{min(zs):.2f}-{max(zs):.2f}]" if zs else "") +
+                  (f", view-ablated {zs_abl:.2f}" if zs_abl is not None else "") +
                   (f" (that task's random walk: {record['random_walk_sr']:.3f})"
                    if "random_walk_sr" in record else "") + ".", ""]
         fake = CompareSpec(name=f"{comp.name} - stage {p}", methods=(p,))
@@ -476,7 +507,9 @@ def _parent_sections(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
         summary.setdefault("stages", {})[p] = dict(
             final_greedy_sr=_median([e.get("greedy_sr") for e in ev]),
             final_sampled_sr=_median([e.get("sampled_sr") for e in ev]),
-            random_walk_sr=chance.get("random_walk_sr"), zero_shot_greedy_sr=_median(zs))
+            final_ablated_sr=own_abl,
+            random_walk_sr=chance.get("random_walk_sr"), zero_shot_greedy_sr=_median(zs),
+            zero_shot_ablated_sr=zs_abl)
     return lines
 
 
@@ -516,7 +549,8 @@ def _plot_curves(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
                  stats_by_stage: dict[str, list[dict[str, Any]]],
                  chance: dict[str, Any] | None = None) -> Path:
     """Two panels: training SR over the last W episodes, and greedy SR over all starts at
-    each periodic evaluation; median and min-max band over seeds; chance lines drawn."""
+    each periodic evaluation (with the view-ablated greedy SR dashed, where the rows have
+    it); median and min-max band over seeds; chance lines drawn."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -535,18 +569,26 @@ def _plot_curves(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
         x = np.arange(1, len(med) + 1)
         (line,) = ax.plot(x, med, label=f"{m} (median of {len(curves)} seeds)")
         ax.fill_between(x, lo, hi, color=line.get_color(), alpha=0.2)
+        ablated_label = True
         for i, s in enumerate(stats):
             if len(s["eval_episodes"]):
                 ax2.plot(s["eval_episodes"], s["eval_greedy_sr"], marker=".", ms=4, lw=1,
                          color=line.get_color(), alpha=0.8,
                          label=f"{m}" if i == 0 else None)
+            abl = np.asarray(s.get("eval_ablated_sr", ()), float)
+            if len(abl) == len(s["eval_episodes"]) and np.isfinite(abl).any():
+                ok = np.isfinite(abl)
+                ax2.plot(np.asarray(s["eval_episodes"])[ok], abl[ok], ls="--", lw=1,
+                         color=line.get_color(), alpha=0.8,
+                         label=f"{m}, view-ablated" if ablated_label else None)
+                ablated_label = False
     for a in (ax, ax2):
         if chance and "random_walk_sr" in chance:
             a.axhline(chance["random_walk_sr"], color="red", ls=":", lw=1,
                       label=f"random walk {chance['random_walk_sr']:.2f}")
         if chance and chance.get("blind_sr") is not None:
             a.axhline(chance["blind_sr"], color="orange", ls=":", lw=1,
-                      label=f"best state-blind {chance['blind_sr']:.2f}")
+                      label=f"best view-blind {chance['blind_sr']:.2f}")
         a.set_xlabel("training episodes")
         a.set_ylim(0, 1.02)
         a.legend(loc="lower right", fontsize=7)
@@ -554,7 +596,8 @@ def _plot_curves(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
     ax2.axhline(cfg.convergence.eval_threshold, color="grey", ls="--", lw=0.8)
     ax.set_ylabel("success rate")
     ax.set_title(f"training SR (sampled actions, last {w} episodes)", fontsize=9)
-    ax2.set_title("greedy SR over all start cells (one line per seed)", fontsize=9)
+    ax2.set_title("greedy SR over all start cells (one line per seed; dashed: "
+                  "view-ablated)", fontsize=9)
     fig.suptitle(comp.name, fontsize=10)
     fig.tight_layout()
     out = root / f"curves-{_slug(comp.name)}.png"

@@ -111,7 +111,10 @@ def prepare_inputs(cfg: ExperimentConfig, root: Path,
     def name(key: str, spec: Any, extra: str = "") -> str:
         if shared_root is None:
             return key
-        blob = json.dumps([asdict(spec), extra], sort_keys=True, default=str)
+        d = asdict(spec)
+        if d.get("max_blind", 0) is None:  # added later: unset keeps the older names
+            d.pop("max_blind")
+        blob = json.dumps([d, extra], sort_keys=True, default=str)
         return f"{key}-{hashlib.sha1(blob.encode()).hexdigest()[:8]}"
 
     task_keys = list(cfg.tasks) if stages is None else \
@@ -148,7 +151,7 @@ def prepare_inputs(cfg: ExperimentConfig, root: Path,
         tasks[key] = str(out.resolve())
     from geonav.experiments.config import check_noise
 
-    check_noise(cfg, {k: task_difficulty(scenes[cfg.tasks[k].scene], p)["random_walk_sr"]
+    check_noise(cfg, {k: task_difficulty(scenes[cfg.tasks[k].scene], p)
                       for k, p in tasks.items()})
     return scenes, tasks
 
@@ -179,10 +182,11 @@ def make_taskset(spec: TaskSpec, scene_path: str):
                                  alt_m=spec.alt_m, step_m=spec.step_m, max_steps=spec.max_steps,
                                  seed=spec.seed, camera=camera, margin_alt_m=spec.margin_alt_m,
                                  max_overlap=spec.max_overlap,
-                                 max_random_walk=spec.max_random_walk)
+                                 max_random_walk=spec.max_random_walk,
+                                 max_blind=spec.max_blind)
     return whole_scene_tasks(scene, spec.alts_m, step_m=spec.step_m, max_steps=spec.max_steps,
                              seed=spec.seed, size_m=spec.size_m, camera=camera,
-                             max_random_walk=spec.max_random_walk)
+                             max_random_walk=spec.max_random_walk, max_blind=spec.max_blind)
 
 
 def _read_json(path: Path) -> dict[str, Any] | None:
@@ -729,11 +733,20 @@ def _same_part(before: dict[str, Any], now: dict[str, Any]) -> bool:
     for k, v in now.items():
         old = before.get(k)
         if isinstance(v, dict) and isinstance(old, dict) and k != "convergence":
-            if any(old.get(n) is not None and old.get(n) != spec for n, spec in v.items()):
+            if any(old.get(n) is not None and not _same_spec(old[n], spec)
+                   for n, spec in v.items()):
                 return False
         elif old != v:
             return False
     return True
+
+
+def _same_spec(old: Any, now: Any) -> bool:
+    """Equal specs, where a key the older config.json lacks counts as unset (None): a
+    field added to geonav later, left at its default, does not block resuming."""
+    if isinstance(old, dict) and isinstance(now, dict):
+        return all(old.get(k) == now.get(k) for k in set(old) | set(now))
+    return bool(old == now)
 
 
 def _refuse_orphan_units(root: Path, previous: dict[str, Any] | None,

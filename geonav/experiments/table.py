@@ -20,6 +20,17 @@ A "reproduced" direction whose ratio (by any rule; by the one rule that shows it
 "... rule only") lies more than a factor :data:`SIZE_TOLERANCE` from the paper's reads
 "direction reproduced, size not (...)".
 
+Chance on the task: the column "chance: random walk / view-blind" gives the comparison's
+``random_walk_sr`` (uniform random actions) and ``blind_sr`` (the best view-blind policy: it
+knows the task's target but ignores the current view; per task the best stationary action
+distribution, mean over tasks), "n/a" where the summary lacks them. With chance the larger
+of the two, a convergence rule whose threshold (``threshold`` for the training-SR rule,
+``eval_threshold`` for the greedy-evaluation rule, from the summary's ``convergence``) lies
+below :func:`view_blind_floor`, chance plus half the gap to 1, can be met without using the
+view, so its verdict cannot show navigation by the view: the row's verdict is then prefixed
+"task solvable without the view (...)" (:func:`solvable_without_view`), naming the rule when
+only one rule's threshold is that low.
+
 Usage: ``geonav experiment table docs/results --readme README.md [--check]`` or
 ``python -m geonav.experiments.table docs/results --readme README.md [--check]``.
 """
@@ -42,6 +53,9 @@ END = "<!-- results-table:end -->"
 COMMAND = "geonav experiment table docs/results --readme README.md"
 RULES = (("ratio", "convergence", "verdict", "training-SR"),
          ("eval_ratio", "eval_convergence", "eval_verdict", "greedy-evaluation"))
+THRESHOLD_KEYS = {"training-SR": "threshold", "greedy-evaluation": "eval_threshold"}
+"""Each rule's success threshold in a summary's ``convergence`` record."""
+FLOOR_TOLERANCE = 1e-12
 
 
 def load_summaries(results_dir: str | Path) -> list[tuple[Path, dict[str, Any]]]:
@@ -161,6 +175,70 @@ def combined_verdict(outcomes: dict[str, str]) -> str:
     return "no effect shown at this budget"
 
 
+def _rate(value: Any) -> float | None:
+    """``value`` as a finite float, else None (absent, null or NaN in older summaries)."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        return None
+    return v if math.isfinite(v) else None
+
+
+def view_blind_floor(random_walk_sr: float | None, blind_sr: float | None) -> float | None:
+    """The lowest success threshold at which a rule can show navigation by the view.
+
+    Args:
+        random_walk_sr: success rate of uniform random actions on the task, in [0, 1].
+        blind_sr: success rate of the best view-blind policy (knows the target, ignores
+            the current view), in [0, 1].
+
+    Returns:
+        chance + (1 - chance) / 2 with chance the larger of the two rates present (as in
+        :func:`geonav.convergence.noise_check`), or None when neither is given.
+    """
+    rates = [r for r in (random_walk_sr, blind_sr) if r is not None]
+    if not rates:
+        return None
+    chance = max(rates)
+    return chance + (1.0 - chance) / 2.0
+
+
+def chance_cell(comp: dict[str, Any]) -> str:
+    """The "chance: random walk / view-blind" cell, e.g. ``0.041 / 0.996``."""
+    rw, blind = _rate(comp.get("random_walk_sr")), _rate(comp.get("blind_sr"))
+    if rw is None and blind is None:
+        return "n/a"
+    return " / ".join("n/a" if r is None else f"{r:.3f}" for r in (rw, blind))
+
+
+def solvable_without_view(summary: dict[str, Any], comp: dict[str, Any]) -> str | None:
+    """The "task solvable without the view (...)" mark when a rule's threshold is below
+    :func:`view_blind_floor` of the comparison's chance figures, else None.
+
+    Names the rule when only one rule's threshold is below the floor; None when the
+    summary lacks the chance figures or the ``convergence`` thresholds.
+    """
+    rw, blind = _rate(comp.get("random_walk_sr")), _rate(comp.get("blind_sr"))
+    floor = view_blind_floor(rw, blind)
+    conv = summary.get("convergence") or {}
+    if floor is None or not isinstance(conv, dict):
+        return None
+    low = {rule: v for rule, key in THRESHOLD_KEYS.items()
+           if (v := _rate(conv.get(key))) is not None and v < floor - FLOOR_TOLERANCE}
+    if not low:
+        return None
+    # the figure that sets the floor: view-blind unless the random walk does better
+    chance = (f"view-blind {blind:.3f}" if blind is not None and (rw is None or blind >= rw)
+              else f"random walk {rw:.3f}")
+    if len(set(low.values())) == 1:
+        thresholds = f"threshold {next(iter(low.values())):g}"
+    else:
+        thresholds = ", ".join(f"{THRESHOLD_KEYS[r]} {v:g}" for r, v in low.items())
+    which = f" by the {next(iter(low))} rule" if len(low) < len(THRESHOLD_KEYS) else ""
+    return (f"task solvable without the view{which} ({chance}; {thresholds} < "
+            f"{floor:.3f})")
+
+
 def _compute(comp: dict[str, Any], order: list[str]) -> str:
     if comp.get("compute_s") is not None:
         return (f"{comp['compute_s'] / 60:.1f} min over {comp.get('compute_units', 0)} units "
@@ -181,8 +259,11 @@ def comparison_row(folder: Path, summary: dict[str, Any], comp: dict[str, Any],
     order = [m for m in (comp.get("order") or list(methods)) if m in methods]
     link = Path(os.path.relpath(folder / "report.md", link_base)).as_posix()
     claim = f"[{comp.get('claim') or comp['name']}]({link}) (`{folder.name}`)"
+    chance = chance_cell(comp)
+    mark = solvable_without_view(summary, comp)
     if len(order) < 2:
-        return f"| {claim} | n/a | n/a | n/a | one method only | {_compute(comp, order)} |"
+        verdict = f"{mark}: one method only" if mark else "one method only"
+        return f"| {claim} | n/a | {chance} | n/a | n/a | {verdict} | {_compute(comp, order)} |"
     a, b = order[:2]
     paper = comp.get("paper") or {}
     expected = None
@@ -204,7 +285,9 @@ def comparison_row(folder: Path, summary: dict[str, Any], comp: dict[str, Any],
     running = sum(int(methods[m].get("in_progress") or 0) for m in order)
     if running:
         verdict += f" (interim: {running} run{'s' if running > 1 else ''} still going)"
-    return (f"| {claim} | {paper_text} | {cells[0]} | {cells[1]} | "
+    if mark:
+        verdict = f"{mark}: {verdict}"
+    return (f"| {claim} | {paper_text} | {chance} | {cells[0]} | {cells[1]} | "
             f"{verdict} | {_compute(comp, order)} |")
 
 
@@ -216,11 +299,14 @@ def render_table(results_dir: str | Path, link_base: str | Path = ".") -> str:
             for folder, summary in load_summaries(results_dir) for comp in summary["comparisons"]]
     return "\n".join([
         f"_Generated by `{COMMAND}` from `docs/results/*/summary.json`; edit those, not "
-        "this table._",
+        "this table. Chance: success of a random walk and of the best view-blind policy "
+        "(knows the target, ignores the view). A rule whose success threshold is below "
+        "chance + half the gap to 1 can be met without the view; its row's verdict then "
+        "starts \"task solvable without the view\"._",
         "",
-        "| claim | paper ratio | our ratio, training-SR e* (seed ranges) | our ratio, "
-        "greedy-eval e* (seed ranges) | verdict | compute |",
-        "|---|---|---|---|---|---|",
+        "| claim | paper ratio | chance: random walk / view-blind | our ratio, training-SR e* "
+        "(seed ranges) | our ratio, greedy-eval e* (seed ranges) | verdict | compute |",
+        "|---|---|---|---|---|---|---|",
         *rows,
         "",
         "Ratio: e* of the second method over the first, medians over seeds; seed ranges: "

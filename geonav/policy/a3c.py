@@ -605,8 +605,12 @@ class A3CTrainer:
 
             path = self.out_dir / "eval.csv"
             new = not path.exists() or path.stat().st_size == 0
+            fields: tuple[str, ...] = (*EVAL_FIELDS, "eval_s")
+            if not new:  # a resumed run appends in the file's own columns (older: fewer)
+                with open(path, newline="") as f:
+                    fields = tuple(next(csv.reader(f), []) or fields)
             with open(path, "a", newline="") as f:
-                w = csv.DictWriter(f, fieldnames=(*EVAL_FIELDS, "eval_s"), extrasaction="ignore")
+                w = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
                 if new:
                     w.writeheader()
                 w.writerow(row)

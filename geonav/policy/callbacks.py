@@ -149,8 +149,10 @@ class TensorBoardMetrics(Callback):
 
         The greedy policy's figures go under SB3's ``EvalCallback`` names (it evaluates
         deterministically by default): ``eval/success_rate``, plus ``eval/spl`` and
-        ``eval/length_ratio``; the sampled policy's under ``eval/sampled_*``; and
-        ``eval/mean_reward``, ``eval/mean_ep_length`` when the row has them.
+        ``eval/length_ratio``; the sampled policy's under ``eval/sampled_*``; the greedy
+        policy's under view ablation (current view replaced by another cell's) under
+        ``eval/ablated_success_rate`` and ``eval/ablated_spl``; and ``eval/mean_reward``,
+        ``eval/mean_ep_length`` when the row has them.
         """
         # the run's total, or this callback's when it spans several runs (curriculum stages)
         x = max(int(row.get("env_steps") or 0), self.env_steps)
@@ -159,6 +161,8 @@ class TensorBoardMetrics(Callback):
                          ("eval/collisions", "greedy_collisions"),
                          ("eval/sampled_success_rate", "sampled_sr"),
                          ("eval/sampled_spl", "sampled_spl"),
+                         ("eval/ablated_success_rate", "ablated_sr"),
+                         ("eval/ablated_spl", "ablated_spl"),
                          ("eval/mean_reward", "mean_reward"),
                          ("eval/mean_ep_length", "mean_ep_length")):
             value = row.get(key)

@@ -158,7 +158,8 @@ def run_train(args: argparse.Namespace) -> int:
 
 
 def run_eval(args: argparse.Namespace) -> int:
-    """Handler of ``geonav eval``: greedy and sampled from every start, beside chance."""
+    """Handler of ``geonav eval``: greedy, sampled and view-ablated greedy from every start,
+    beside chance."""
     from geonav.policy import evaluation
 
     if args.max_starts < 1:
@@ -167,15 +168,19 @@ def run_eval(args: argparse.Namespace) -> int:
         args.checkpoint, args.scene, args.tasks, alt_m=args.altitude,
         max_steps=args.max_steps, max_starts=args.max_starts, seed=args.seed)
     g, s = summary["greedy"], summary["sampled"]
+    ablated = summary.get("ablated") or {}
+    abl = f"{ablated['sr']:.3f}" if ablated.get("sr") is not None else "n/a"
     print(f"{res['starts']} starts: greedy SR {g['sr']:.3f} SPL {g['spl']:.3f} | sampled SR "
-          f"{s['sr']:.3f} SPL {s['spl']:.3f} | chance: random walk "
-          f"{summary['random_walk_sr']:.3f}, best state-blind {summary['blind_sr']:.3f}",
-          file=sys.stderr)
+          f"{s['sr']:.3f} SPL {s['spl']:.3f} | view-ablated (current view replaced by "
+          f"another cell's): SR {abl} | chance: random walk "
+          f"{summary['random_walk_sr']:.3f}, best view-blind (knows the target, ignores the "
+          f"view) {summary['blind_sr']:.3f}", file=sys.stderr)
     print(json.dumps(_no_nan(summary)))
     if args.json:
         out = Path(args.json)
         tmp = out.with_name(f".{out.name}.tmp")
-        per = {"greedy": res["greedy"].episodes, "sampled": res["sampled"].episodes}
+        per = {name: res[name].episodes for name in ("greedy", "sampled", "ablated")
+               if name in res}
         tmp.write_text(json.dumps(_no_nan({**summary, "per_episode": per}), indent=1))
         os.replace(tmp, out)
     return 0

@@ -268,8 +268,12 @@ class FrozenEncoder:
 
 
 def cache_key(info: dict[str, Any], *, target: bool = False) -> CacheKey:
-    """The feature-cache key of the current view (or of the target view) from an env info."""
-    cell = info["target_cell"] if target else info["cell"]
+    """The feature-cache key of the current view (or of the target view) from an env info.
+
+    The current view is the one at ``info["view_cell"]`` when the info has it (view
+    ablation, :func:`geonav.policy.evaluation.ablated_observation`: the image shown is
+    another cell's), else at ``info["cell"]``."""
+    cell = info["target_cell"] if target else info.get("view_cell", info["cell"])
     # the task's key names its scene, lattice, target and camera, so one encoder serves
     # several envs; infos without it (hand-made ones) fall back to the task's index
     task = info.get("task_key", int(info["task_index"]))

@@ -131,12 +131,12 @@ def run_preview(args: argparse.Namespace) -> int:
 
         tasks = TaskSet.load(args.tasks)
         tasks.check_scene(scene)
-        diff = tasks.meta.get("difficulty")
-        if not isinstance(diff, dict):
+        diff = tasks.meta.get("difficulty") if isinstance(tasks.meta, dict) else None
+        if not isinstance(diff, dict) or "blind_sr" not in diff:
             diff = taskset_difficulty(tasks, scene)
         chance = f"; chance: {describe(diff)}"
         title = (f"{scene.name}: {len(tasks)} tasks; random walk SR "
-                 f"{diff['random_walk_sr']:.2f}, best state-blind {diff['blind_sr']:.2f}")
+                 f"{diff['random_walk_sr']:.2f}, best view-blind {diff['blind_sr']:.2f}")
     out = draw_scene(scene, args.out, tasks=tasks, footprints_at=alts, max_px=args.max_px,
                      title=title)
     n = len(tasks) if tasks is not None else 0
