@@ -168,8 +168,16 @@ def set_difficulty(maps: Sequence[TaskMap], max_steps: int | Sequence[int] | Non
 
     ``max_steps``: one cap for all, one per task, or None for each task's own."""
     caps = list(max_steps) if isinstance(max_steps, Sequence) else [max_steps] * len(maps)
-    per = {tm.task.name: task_difficulty(tm, cap, blind_grid)
-           for tm, cap in zip(maps, caps, strict=True)}
+    per: dict[str, TaskDifficulty] = {}
+    memo: dict[bytes, TaskDifficulty] = {}  # the figures depend on these alone: the
+    for tm, cap in zip(maps, caps, strict=True):  # altitudes of a whole-scene set share them
+        c = tm.task.max_steps if cap is None else cap
+        shape_target = (tm.blocked.shape, tm.task.target_cell, c, blind_grid)
+        key = b"|".join([tm.blocked.tobytes(), np.asarray(tm.start_cells(c)).tobytes(),
+                         str(shape_target).encode()])
+        if key not in memo:
+            memo[key] = task_difficulty(tm, c, blind_grid)
+        per[tm.task.name] = memo[key]
     vals = list(per.values())
     return {"tasks": {k: v.to_dict() for k, v in per.items()},
             "random_walk_sr": float(np.mean([v.random_walk_sr for v in vals])),

@@ -589,12 +589,13 @@ def whole_scene_tasks(
     if len(candidates) == 0:
         raise TaskError(f"no cell of region {region_m} is free, with {min_coverage:.0%} valid "
                         f"imagery in its view, at all of {list(alts_m)} m")
+    memo: dict[bytes, bool] = {}  # altitudes with the same obstacles and starts share it
     for _ in range(200):
         target = tuple(int(v) for v in candidates[rng.integers(len(candidates))])
         tasks = [NavTask(f"scene@{alt:g}m", "scene", region_m, step_m, float(alt),
                          (target[0], target[1]), max_steps, obstacles, min_coverage)
                  for alt in alts_m]
-        if all(_chance_ok(bind(task, scene, camera), max_random_walk, max_blind)
+        if all(_chance_ok(bind(task, scene, camera), max_random_walk, max_blind, memo)
                for task in tasks):
             break
     else:
@@ -635,22 +636,35 @@ def starts_on_every_side(tm: TaskMap) -> bool:
     return bool((xs < tx).any() and (xs > tx).any() and (ys < ty).any() and (ys > ty).any())
 
 
-def _chance_ok(tm: TaskMap, limit: float | None, max_blind: float | None = None) -> bool:
+def _chance_ok(tm: TaskMap, limit: float | None, max_blind: float | None = None,
+               memo: dict[bytes, bool] | None = None) -> bool:
     """True when chance stays within the limits: a uniform random walk succeeds at most
     ``limit`` (None: any) and the best view-blind policy at most ``max_blind`` (None: any),
-    with start cells on every side of the target."""
+    with start cells on every side of the target. ``memo`` keeps the answer per
+    (obstacles, starts, target, cap): the figures depend on nothing else, so the
+    altitudes of a whole-scene task without a surface model share one computation."""
     if limit is None and max_blind is None:
         return True
     from geonav.difficulty import blind_at_most, start_success
 
+    key = b""
+    if memo is not None:
+        shape_target = (tm.blocked.shape, tm.task.target_cell, tm.task.max_steps)
+        key = b"|".join([tm.blocked.tobytes(), np.asarray(tm.start_cells()).tobytes(),
+                         str(shape_target).encode()])
+        if key in memo:
+            return memo[key]
     try:
+        ok = True
         if limit is not None and float(start_success(tm)) > limit:
-            return False
-        if max_blind is not None:
-            return starts_on_every_side(tm) and blind_at_most(tm, max_blind)
-        return True
+            ok = False
+        elif max_blind is not None:
+            ok = starts_on_every_side(tm) and blind_at_most(tm, max_blind)
     except TaskError:  # no start cell within the cap
-        return False
+        ok = False
+    if memo is not None:
+        memo[key] = ok
+    return ok
 
 
 def _overlap(a: Region, b: Region) -> float:

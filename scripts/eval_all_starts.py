@@ -45,11 +45,16 @@ def evaluate_unit(unit: str) -> dict[str, Any]:
            "greedy_sr": g["sr"], "greedy_spl": g["spl"],
            "sampled_sr": s["sr"], "sampled_spl": s["spl"],
            "ablated_sr": (summary.get("ablated") or {}).get("sr"),
-           "random_walk_sr": summary["random_walk_sr"]}
+           "random_walk_sr": summary["random_walk_sr"], "blind_sr": summary["blind_sr"]}
     tmp = folder / f".{OUT}.tmp"
     tmp.write_text(json.dumps(out, indent=1))
     os.replace(tmp, folder / OUT)
     return out
+
+
+def _opt(v: float | None) -> str:
+    """A chance figure, or n/a for rows kept before it was recorded."""
+    return "n/a" if v is None else f"{v:.3f}"
 
 
 def _fmt(values: list[float]) -> str:
@@ -94,8 +99,8 @@ def main(argv: list[str] | None = None) -> int:
                     print(f"  done: {unit}", file=sys.stderr)
 
     print("| stage | starts | greedy SR per seed | greedy SR | greedy SPL | sampled SR | "
-          "random walk |")
-    print("|---|---|---|---|---|---|---|")
+          "view-ablated greedy SR | random walk / view-blind |")
+    print("|---|---|---|---|---|---|---|---|")
     for stage, ps in units.items():
         rows = [json.loads((p / OUT).read_text()) for p in ps]
         per = " / ".join(f"{r['greedy_sr']:.2f}" for r in rows)
@@ -104,7 +109,9 @@ def main(argv: list[str] | None = None) -> int:
               f"(seeds {', '.join(p.name[5:] for p in ps)}) | "
               f"{_fmt([r['greedy_sr'] for r in rows])} | "
               f"{_fmt([r['greedy_spl'] for r in rows])} | "
-              f"{_fmt([r['sampled_sr'] for r in rows])} | {rows[0]['random_walk_sr']:.3f} |")
+              f"{_fmt([r['sampled_sr'] for r in rows])} | "
+              f"{_fmt([r['ablated_sr'] for r in rows if r.get('ablated_sr') is not None])} | "
+              f"{rows[0]['random_walk_sr']:.3f} / {_opt(rows[0].get('blind_sr'))} |")
     return 0
 
 

@@ -495,11 +495,14 @@ def _parent_sections(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
                   f"{_f(_median([e.get('greedy_sr') for e in ev]))} (sampled "
                   f"{_f(_median([e.get('sampled_sr') for e in ev]))}; view-ablated "
                   f"{_f(own_abl)}; random walk "
-                  f"{_f(chance.get('random_walk_sr'), '.3f')}). Zero-shot greedy SR of its "
+                  f"{_f(chance.get('random_walk_sr'), '.3f')}, best view-blind "
+                  f"{_f(chance.get('blind_sr'), '.3f')}). Zero-shot greedy SR of its "
                   f"final policy on the compared task: "
                   f"{_f(_median(zs))}" + (f" [{min(zs):.2f}-{max(zs):.2f}]" if zs else "") +
                   (f", view-ablated {zs_abl:.2f}" if zs_abl is not None else "") +
-                  (f" (that task's random walk: {record['random_walk_sr']:.3f})"
+                  (f" (that task's random walk: {record['random_walk_sr']:.3f}"
+                   + (f", best view-blind: {record['blind_sr']:.3f}"
+                      if record.get("blind_sr") is not None else "") + ")"
                    if "random_walk_sr" in record else "") + ".", ""]
         fake = CompareSpec(name=f"{comp.name} - stage {p}", methods=(p,))
         png = _plot_curves(cfg, fake, root, {p: stats}, chance)
