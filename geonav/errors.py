@@ -48,6 +48,11 @@ class ConfigError(GeonavError):
     """A configuration value or option is invalid."""
 
 
+class ReportError(GeonavError):
+    """A run folder cannot be read into a report (a corrupt metrics file, a finished unit
+    whose files are missing)."""
+
+
 class TrainingDiverged(GeonavError):
     """A learner's losses became NaN or infinite: the run cannot go on from here."""
 

@@ -33,11 +33,14 @@ def evaluate_unit(unit: str) -> dict[str, Any]:
     """Evaluate one unit's final checkpoint from every start; writes and returns the row."""
     import torch
 
+    from geonav.experiments.runner import read_result
     from geonav.policy.evaluation import evaluate_checkpoint
 
     torch.set_num_threads(1)
     folder = Path(unit)
-    result = json.loads((folder / "result.json").read_text())
+    result = read_result(folder)  # its paths are relative to the run folder
+    if result is None:
+        raise SystemExit(f"{folder / 'result.json'} cannot be read")
     summary, _ = evaluate_checkpoint(result["checkpoint"], result["scene"], result["tasks"],
                                      max_starts=ALL, seed=0)
     g, s = summary["greedy"], summary["sampled"]

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from geonav.errors import ConfigError
+from geonav.errors import ConfigError, ReportError
 from geonav.experiments.config import load_config, parse_config
 
 TINY = """
@@ -145,7 +145,11 @@ def test_tiny_experiment_end_to_end(tmp_path):
     # transfer started from pre's final weights, scratch did not
     tr = json.loads((root / "units/transfer/seed-0/config.json").read_text())
     assert tr["algorithm"] == "a3c"
-    result = json.loads((root / "units/transfer/seed-1/result.json").read_text())
+    from geonav.experiments.runner import read_result
+
+    stored = json.loads((root / "units/transfer/seed-1/result.json").read_text())
+    assert stored["checkpoint"] == "units/transfer/seed-1/checkpoints/final.pt"  # relocatable
+    result = read_result(root / "units/transfer/seed-1")
     assert Path(result["checkpoint"]).exists() and result["eval"]["starts"] == 8
     assert 0.0 < result["eval"]["random_walk_sr"] < 1.0 and "zero_shot" in result["eval"]
     assert "Chance on this task" in report and "Verdict (greedy-evaluation rule)" in report
@@ -238,7 +242,7 @@ def test_read_success_skips_only_a_cut_last_row(tmp_path):
     succ, wall, length, short = read_success(f)
     assert succ.tolist() == [True, False, True, False, True] and len(wall) == 5
     f.write_text(head + "\n".join(rows[:2] + ["3,x,0.3,5,4"] + rows[3:]) + "\n")
-    with pytest.raises(ValueError, match="line 4 cannot be read"):
+    with pytest.raises(ReportError, match="line 4 cannot be read"):
         read_success(f)  # a bad row in the middle is corruption, not a cut curve
 
 
@@ -575,3 +579,78 @@ def test_report_shows_view_ablated_sr_and_tolerates_runs_without_it(tmp_path):
     assert "view-ablated 0.20; random walk" in report
     assert "on the compared task: 0.60 [0.60-0.60], view-ablated 0.10 (that" in report
     assert (root / "curves-transfer-vs-scratch.png").stat().st_size > 10_000
+
+
+def test_run_folder_is_read_where_it_is_after_a_copy_or_move(tmp_path):
+    """result.json stores paths relative to the run folder; one written with absolute paths
+    (before they were relative) is read from the folder's new place too. A copy is reported
+    from the copy, and with the original gone, every seed still counts."""
+    import shutil
+
+    import tomllib
+
+    from geonav.experiments.report import write_report
+    from geonav.experiments.runner import read_result, write_result
+
+    cfg = parse_config(tomllib.loads(TINY.replace("EPISODES", "150")), "tiny.toml")
+    first = tmp_path / "first" / "tiny"
+    for stage in ("pre", "transfer", "scratch"):
+        for seed in (0, 1):
+            _fake_unit(first, stage, seed, [1] * 100, [(50, 0.5), (100, 1.0)])
+    unit = first / "units" / "scratch" / "seed-0"
+    write_result(unit, {"episodes": 100, "eval": {}, "metrics": str(unit / "metrics.csv"),
+                        "checkpoint": str(unit / "checkpoints" / "final.pt"),
+                        "tasks": str(first / "tasks" / "B_target.json"),
+                        "scene": "/elsewhere/scene"})
+    stored = json.loads((unit / "result.json").read_text())
+    assert stored["metrics"] == "units/scratch/seed-0/metrics.csv"
+    assert stored["tasks"] == "tasks/B_target.json"
+    assert stored["scene"] == "/elsewhere/scene"  # outside the run folder: kept as given
+    old = first / "units" / "transfer" / "seed-1"  # as geonav wrote them before
+    (old / "result.json").write_text(json.dumps(
+        {"episodes": 100, "eval": {}, "metrics": str(old / "metrics.csv"),
+         "checkpoint": str(old / "checkpoints" / "final.pt")}))
+
+    moved = tmp_path / "second" / "tiny"
+    shutil.copytree(first, moved)
+    # the copy is read from the copy, even while the original is still there
+    assert read_result(moved / "units/scratch/seed-0")["metrics"] == \
+        str(moved / "units/scratch/seed-0/metrics.csv")
+    assert read_result(moved / "units/transfer/seed-1")["checkpoint"] == \
+        str(moved / "units/transfer/seed-1/checkpoints/final.pt")
+    (moved / "units/transfer/seed-1/metrics.csv").write_text(
+        "episode,success,elapsed_s,length,shortest_path\n1,1,0.1,5,4\n")
+    shutil.rmtree(tmp_path / "first")
+    summary = write_report(cfg, moved, ["pre", "transfer", "scratch"], {}, {}, {})
+    assert summary["unreadable"] == {}
+    runs = summary["comparisons"][0]["methods"]["transfer"]["runs"]
+    assert [r["episodes"] for r in runs] == [100, 1]  # seed 1 from the copy's own file
+    assert "| transfer | train | a3c | B_target | 150 | 2/2 |" in \
+        (moved / "report.md").read_text()
+
+
+def test_report_leaves_out_unreadable_units_and_says_so(tmp_path):
+    """A corrupt metrics row mid-file, or a finished unit whose metrics are gone, is listed
+    under 'Unreadable units' (and makes `experiment report` exit 1) instead of a traceback
+    or a silent '1/2 seeds done'."""
+    import tomllib
+
+    from geonav.experiments.report import write_report
+
+    cfg = parse_config(tomllib.loads(TINY.replace("EPISODES", "150")), "tiny.toml")
+    root = tmp_path / "tiny"
+    for stage in ("pre", "transfer", "scratch"):
+        for seed in (0, 1):
+            _fake_unit(root, stage, seed, [1] * 100, [(50, 0.5), (100, 1.0)])
+    bad = root / "units" / "scratch" / "seed-1" / "metrics.csv"
+    lines = bad.read_text().splitlines()
+    lines[10] = "10,x,0.1,10,10"
+    bad.write_text("\n".join(lines) + "\n")
+    (root / "units" / "transfer" / "seed-0" / "metrics.csv").unlink()
+    summary = write_report(cfg, root, ["pre", "transfer", "scratch"], {}, {}, {})
+    assert sorted(summary["unreadable"]) == ["scratch/seed-1", "transfer/seed-0"]
+    assert "line 11 cannot be read" in summary["unreadable"]["scratch/seed-1"]
+    assert "does not exist" in summary["unreadable"]["transfer/seed-0"]
+    report = (root / "report.md").read_text()
+    assert "## Unreadable units" in report
+    assert "| scratch | train | a3c | B_target | 150 | 1/2 (1 unreadable) |" in report

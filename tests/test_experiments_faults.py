@@ -134,6 +134,38 @@ def test_unit_lock_refuses_a_live_holder_and_takes_over_a_dead_ones(tmp_path, ca
     quitting.wait()
 
 
+def test_runner_refused_by_a_live_runs_lock_leaves_its_report_alone(tmp_path):
+    """A second runner of the same experiment, refused by the unit locks of the live one,
+    does not rewrite report.md and summary.json with false "Failed units": the live run
+    writes them when it ends."""
+    cfg = _load(_config(tmp_path, [dict(name="pre", episodes=20),
+                                   dict(name="after", episodes=20, extra='init = "pre"')]))
+    root = tmp_path / "runs" / "faults"
+    unit = root / "units" / "pre" / "seed-0"
+    root.mkdir(parents=True)
+    (root / "config.json").write_text(json.dumps(cfg.to_dict()))  # as the live run wrote it
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import time; from pathlib import Path; "
+         "from geonav.experiments.runner import unit_lock\n"
+         f"with unit_lock(Path({str(unit)!r})):\n    print('held', flush=True); time.sleep(60)"],
+        stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        (root / "report.md").write_text("the live run's report\n")
+        (root / "summary.json").write_text('{"name": "faults", "live": true}')
+        summary = run_experiment(cfg, tmp_path / "runs", backend=LocalBackend(1))
+    finally:
+        holder.kill()
+        holder.wait()
+    assert list(summary["locked"]) == ["pre/seed-0"]
+    assert f'"pid": {holder.pid}' in summary["locked"]["pre/seed-0"]
+    assert summary["failed"]["after/seed-0"] == "parent pre/seed-0 is being trained by " \
+        "another run"
+    assert (root / "report.md").read_text() == "the live run's report\n"
+    assert json.loads((root / "summary.json").read_text()) == {"name": "faults", "live": True}
+    assert not (unit / "result.json").exists()
+
+
 def test_sigkilled_runner_leaves_no_worker_alive(tmp_path):
     # two long units, one of them with an A3C worker process of its own (a grandchild)
     cfg = _config(tmp_path, [dict(name="solo", episodes=20000),

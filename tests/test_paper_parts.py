@@ -26,6 +26,7 @@ else:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
 from geonav.experiments.config import ExperimentConfig, parse_config
+from geonav.experiments.runner import read_result
 
 PAPER = Path(__file__).resolve().parent.parent / "configs" / "paper.toml"
 
@@ -220,15 +221,14 @@ def test_paper_part_runs_tiny(part: str, tiny: ExperimentConfig, inputs: Path,
         stage = tiny.stages[key]
         for seed in tiny.seeds:
             unit = root / "units" / key / f"seed-{seed}"
-            result = json.loads((unit / "result.json").read_text())
+            result = read_result(unit)
             assert (result["mode"], result["algo"]) == (stage.mode, stage.algo), key
             assert Path(result["checkpoint"]).exists(), key
             if stage.init is None:
                 assert str(unit) not in loaded_inits and "zero_shot" not in result["eval"], key
                 continue
             # started from its parent's final checkpoint of the same seed
-            parent = json.loads((root / "units" / stage.init / f"seed-{seed}" /
-                                 "result.json").read_text())["checkpoint"]
+            parent = read_result(root / "units" / stage.init / f"seed-{seed}")["checkpoint"]
             assert result["eval"]["zero_shot"], key
             if stage.mode == "curriculum":
                 state = json.loads((unit / "curriculum.json").read_text())

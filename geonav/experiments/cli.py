@@ -112,6 +112,11 @@ def run(args: argparse.Namespace) -> int:
                              progress=progress_bar("inputs"))
     overall.close()
     root = Path(args.out) / cfg.name
+    if summary.get("locked"):
+        print(f"report not written: {len(summary['locked'])} unit(s) are being trained by "
+              f"another run of {cfg.name} ({', '.join(summary['locked'])}); it writes "
+              f"{root / 'report.md'} when it ends")
+        return 1
     print(f"report: {root / 'report.md'}")
     for comp in summary.get("comparisons", []):
         parts = []
@@ -226,10 +231,12 @@ def run_report(args: argparse.Namespace) -> int:
     cfg = load_config(args.config, _overrides(args))
     root = Path(args.out) / cfg.name
     scenes, tasks = prepare_inputs(cfg, root)
-    write_report(cfg, root, cfg.stages_for(args.only), scenes, tasks, {}, partial=args.partial,
-                 parts=args.only)
+    summary = write_report(cfg, root, cfg.stages_for(args.only), scenes, tasks, {},
+                           partial=args.partial, parts=args.only)
     print(f"report: {root / 'report.md'}")
-    return 0
+    for key, why in summary["unreadable"].items():
+        print(f"  left out, unreadable: {key}: {why}")
+    return 1 if summary["unreadable"] else 0
 
 
 def run_table(args: argparse.Namespace) -> int:

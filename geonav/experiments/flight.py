@@ -19,7 +19,7 @@ import numpy as np
 
 from geonav.errors import ConfigError
 from geonav.experiments.config import ExperimentConfig
-from geonav.experiments.runner import RESULT, Unit, unit_dir
+from geonav.experiments.runner import RESULT, Unit, read_result, unit_dir
 
 log = logging.getLogger(__name__)
 
@@ -43,7 +43,9 @@ def fly_result(cfg: ExperimentConfig, root: Path, progress: Any = None) -> dict[
     if not result_path.exists():
         raise ConfigError(f"[flight]: stage {stage} seed {seed} has not finished "
                           f"({result_path} missing)")
-    result = json.loads(result_path.read_text())
+    result = read_result(result_path.parent)
+    if result is None:
+        raise ConfigError(f"[flight]: {result_path} cannot be read (not JSON)")
     scene = Scene.open(result["scene"])
     ts = TaskSet.load(result["tasks"])
     task = ts.tasks[int(fl.get("task_index", 0))]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import logging
 import math
 from dataclasses import replace
 from pathlib import Path
@@ -21,8 +22,11 @@ from geonav.convergence import (
     moving_success_rate,
     summarize,
 )
+from geonav.errors import ReportError
 from geonav.experiments.config import CompareSpec, ExperimentConfig
-from geonav.experiments.runner import RESULT, Unit, unit_dir
+from geonav.experiments.runner import RESULT, Unit, read_result, unit_dir
+
+log = logging.getLogger(__name__)
 
 
 def read_success(metrics_csv: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -30,8 +34,8 @@ def read_success(metrics_csv: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray,
     last row cut short (a run still writing, or killed mid-line) is left out.
 
     Raises:
-        ValueError: a row that cannot be read is followed by others (a corrupt file, not a
-            cut last row): the curve would silently stop there.
+        ReportError: a row that cannot be read is followed by others (a corrupt file, not
+            a cut last row): the curve would silently stop there.
     """
     succ: list[bool] = []
     wall: list[float] = []
@@ -41,9 +45,10 @@ def read_success(metrics_csv: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray,
     with open(metrics_csv, newline="") as f:
         for line, row in enumerate(csv.DictReader(f), start=2):
             if bad is not None:
-                raise ValueError(f"{metrics_csv}: line {bad} cannot be read (success, "
-                                 "elapsed_s, length, shortest_path) but is not the last row; "
-                                 "the file is corrupt")
+                raise ReportError(f"{metrics_csv}: line {bad} cannot be read (success, "
+                                  "elapsed_s, length, shortest_path) but is not the last row; "
+                                  "the file is corrupt: repair or remove that line, or rerun "
+                                  "the unit (delete its folder)")
             try:
                 values = (float(row["success"]) > 0.5, float(row.get("elapsed_s") or "nan"),
                           float(row.get("length") or "nan"),
@@ -135,18 +140,29 @@ def unit_stats(root: Path, unit: Unit, criterion: ConvergenceCriterion,
     """Convergence, wall time and final evaluation of one finished unit; with ``partial``,
     also of one still running (see :func:`in_progress_result`): its e* is taken over the
     episodes it has so far, so a run that has not met the rule counts, censored, at the
-    episode it has reached (a lower bound), and it has no final evaluation."""
+    episode it has reached (a lower bound), and it has no final evaluation.
+
+    Raises:
+        ReportError: the unit finished but its files cannot be read (a result.json that is
+            not JSON, a metrics file it names that is missing or corrupt).
+    """
     out_dir = unit_dir(root, unit)
     result_path = out_dir / RESULT
     if result_path.exists():
-        result = json.loads(result_path.read_text())
+        found = read_result(out_dir)
+        if found is None:
+            raise ReportError(f"{result_path} cannot be read (not JSON); rerun the unit "
+                              "(delete its folder)")
+        result = found
     elif partial and (stand_in := in_progress_result(out_dir)) is not None:
         result = stand_in
     else:
         return None
-    metrics = Path(result.get("metrics", out_dir / "metrics.csv"))
+    metrics = Path(result.get("metrics") or out_dir / "metrics.csv")
     if not metrics.exists():
-        return None
+        raise ReportError(f"{result_path} names the metrics file {metrics}, which does not "
+                          "exist: copy the whole run folder, or rerun the unit (delete its "
+                          "folder)")
     success, wall, length, short = read_success(metrics)
     conv = episodes_to_convergence(success, criterion)
     wall_to = None
@@ -170,6 +186,20 @@ def unit_stats(root: Path, unit: Unit, criterion: ConvergenceCriterion,
         trajectories=result.get("trajectories", []), result=result,
         in_progress=bool(result.get("in_progress")),
     )
+
+
+def _stats(root: Path, unit: Unit, criterion: ConvergenceCriterion, partial: bool,
+           unreadable: dict[str, str]) -> dict[str, Any] | None:
+    """:func:`unit_stats`, with a unit whose files cannot be read recorded in
+    ``unreadable`` (key -> why) and left out, so one bad unit does not stop the report."""
+    if unit.key in unreadable:
+        return None
+    try:
+        return unit_stats(root, unit, criterion, partial)
+    except ReportError as err:
+        log.warning("unit %s left out of the report: %s", unit.key, err)
+        unreadable[unit.key] = str(err)
+        return None
 
 
 def _seed_stats(results: list[Any]) -> dict[str, Any] | None:
@@ -219,7 +249,10 @@ def write_report(cfg: ExperimentConfig, root: Path, stage_keys: list[str],
     (an interim report of a run still going), units that have started but not finished
     count at the episode they have reached, and the report says so. With ``parts`` (the
     run's ``--only``), only those parts' comparisons are written, not every other part
-    whose stages happen to be among ``stage_keys`` (a part that reuses another's runs)."""
+    whose stages happen to be among ``stage_keys`` (a part that reuses another's runs).
+
+    A unit whose files cannot be read (see :func:`unit_stats`) is left out and listed
+    under "Unreadable units" and in ``summary["unreadable"]``."""
     crit = cfg.convergence
     lines = [f"# Experiment `{cfg.name}`", "",
              f"Config: `{cfg.source}`; seeds {list(cfg.seeds)}. Two convergence rules "
@@ -240,11 +273,13 @@ def write_report(cfg: ExperimentConfig, root: Path, stage_keys: list[str],
                                                                  failed.items()}}
     summary["convergence"] = dict(window=crit.window, threshold=crit.threshold, hold=crit.hold,
                                   eval_threshold=crit.eval_threshold)
+    unreadable: dict[str, str] = {}
+    summary["unreadable"] = unreadable
     stats_by_stage: dict[str, list[dict[str, Any]]] = {}
     for key in stage_keys:
         stats_by_stage[key] = [s for seed in cfg.seeds
-                               if (s := unit_stats(root, Unit(key, seed), crit, partial))
-                               is not None]
+                               if (s := _stats(root, Unit(key, seed), crit, partial,
+                                               unreadable)) is not None]
     running = [f"{key}/seed-{s['seed']} ({s['episodes']} episodes)"
                for key in stage_keys for s in stats_by_stage[key] if s["in_progress"]]
     summary["in_progress"] = running
@@ -261,6 +296,10 @@ def write_report(cfg: ExperimentConfig, root: Path, stage_keys: list[str],
         if parts and (comp.part or comp.name) not in parts:
             continue
         lines += _comparison(cfg, comp, root, stats_by_stage, summary, scenes)
+    if unreadable:
+        lines += ["## Unreadable units", "", "Finished units whose files cannot be read; "
+                  "they are left out of every figure above.", ""] + \
+            [f"- `{k}`: {m}" for k, m in unreadable.items()] + [""]
     if failed:
         lines += ["## Failed units", ""] + [f"- `{u.key}`: {m}" for u, m in failed.items()] + [""]
     lines += ["## Stages", "", "| stage | mode | algo | tasks | budget | seeds done |",
@@ -269,9 +308,11 @@ def write_report(cfg: ExperimentConfig, root: Path, stage_keys: list[str],
         st = cfg.stages[key]
         n_run = sum(s["in_progress"] for s in stats_by_stage[key])
         n_done = len(stats_by_stage[key]) - n_run
+        n_bad = sum(f"{key}/seed-{seed}" in unreadable for seed in cfg.seeds)
         lines.append(f"| {key} | {st.mode} | {st.algo} | {st.tasks} | {st.episodes} | "
                      f"{n_done}/{len(cfg.seeds)}"
-                     f"{f' (+{n_run} running)' if n_run else ''} |")
+                     f"{f' (+{n_run} running)' if n_run else ''}"
+                     f"{f' ({n_bad} unreadable)' if n_bad else ''} |")
     (root / "report.md").write_text("\n".join(lines) + "\n")
     (root / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default))
     return summary
@@ -408,7 +449,7 @@ def _comparison(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
     lines += ["", "median [min-max] over seeds; IQM: interquartile mean with a 95 % "
               "stratified-bootstrap interval (rliable). `+`: a lower bound (censored runs, "
               "which never met the rule within their budget, count at their budget).", ""]
-    record.update(_compute(cfg, comp, root, stats_by_stage))
+    record.update(_compute(cfg, comp, root, stats_by_stage, summary["unreadable"]))
     if len(comp.methods) >= 2:
         a, b = comp.methods[:2]
         record["ratio"], record["eval_ratio"] = None, None
@@ -442,7 +483,8 @@ def _comparison(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
 
 
 def _compute(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
-             stats_by_stage: dict[str, list[dict[str, Any]]]) -> dict[str, Any]:
+             stats_by_stage: dict[str, list[dict[str, Any]]],
+             unreadable: dict[str, str]) -> dict[str, Any]:
     """Compute a comparison used: the training wall seconds of every finished unit of its
     methods and of the stages they start from, summed (``compute_s``), and their count."""
     keys: list[str] = []
@@ -456,7 +498,8 @@ def _compute(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
         stats = stats_by_stage.get(k)
         if stats is None:
             stats = [s for seed in cfg.seeds
-                     if (s := unit_stats(root, Unit(k, seed), cfg.convergence)) is not None]
+                     if (s := _stats(root, Unit(k, seed), cfg.convergence, False, unreadable))
+                     is not None]
         for s in stats:
             if s["wall_total_s"] is not None and not math.isnan(s["wall_total_s"]):
                 total += float(s["wall_total_s"])
@@ -478,7 +521,8 @@ def _parent_sections(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
             p = cfg.stages[p].init
     for p in parents:
         stats = [s for seed in cfg.seeds
-                 if (s := unit_stats(root, Unit(p, seed), cfg.convergence)) is not None]
+                 if (s := _stats(root, Unit(p, seed), cfg.convergence, False,
+                                 summary["unreadable"])) is not None]
         if not stats:
             continue
         st = cfg.stages[p]
@@ -524,7 +568,10 @@ def _with_parents(cfg: ExperimentConfig, root: Path, stage: str, s: dict[str, An
     extra = int(s["result"].get("episodes_before_metrics", 0))
     parent = cfg.stages[stage].init
     while parent is not None:
-        r = json.loads((unit_dir(root, Unit(parent, s["seed"])) / RESULT).read_text())
+        r = read_result(unit_dir(root, Unit(parent, s["seed"])))
+        if r is None:
+            raise ReportError(f"count_parents: {unit_dir(root, Unit(parent, s['seed']))} has "
+                              f"no readable {RESULT}; its episodes cannot be counted")
         extra += int(r.get("episodes", 0))
         parent = cfg.stages[parent].init
     return replace(conv, episodes=None if conv.episodes is None else conv.episodes + extra,

@@ -25,7 +25,11 @@ other units go on (those that start from it are skipped).
 
 Every unit holds its folder's lock while it trains, so two runs of the same
 experiment (or an orphaned worker of a killed run) never train one unit twice
-at once: the second one fails with :class:`UnitLocked`.
+at once: the second one fails with :class:`UnitLocked` on those units and leaves
+``summary.json`` and ``report.md`` to the first (which writes them when it ends).
+
+``result.json`` stores its paths relative to the run folder, so a run folder that is
+copied or moved is reported from where it is (:func:`read_result`).
 """
 
 from __future__ import annotations
@@ -202,6 +206,80 @@ def _write_json(path: Path, data: dict[str, Any]) -> None:
     os.replace(tmp, path)
 
 
+RESULT_PATHS = ("checkpoint", "metrics", "evals", "scene", "tasks")
+"""The keys of a unit's ``result.json`` that hold paths."""
+
+SHARED_INPUTS = "inputs"
+"""A sweep's folder of shared scenes and task sets, beside its run folders."""
+
+
+def run_root(unit_folder: Path) -> Path:
+    """The run folder of a unit folder ``RUN/units/<stage>/seed-<s>`` (lexically: a unit
+    folder that links to another run's unit is still this run's)."""
+    return Path(os.path.abspath(unit_folder)).parents[2]
+
+
+def write_result(out: Path, result: dict[str, Any]) -> None:
+    """Write a unit's ``result.json`` with its paths relative to the run folder, so a run
+    folder that is copied or moved is read from where it is. A path outside the run folder
+    (a scene or task set the config names, other than a sweep's shared ``inputs/`` beside
+    it) stays absolute."""
+    root = run_root(out)
+    stored = dict(result)
+    for key in RESULT_PATHS:
+        value = stored.get(key)
+        if not value:
+            continue
+        path = os.path.abspath(value)
+        for base in (root, root.parent / SHARED_INPUTS):
+            rel = os.path.relpath(path, base)
+            if not rel.startswith(".."):
+                stored[key] = os.path.relpath(path, root)
+                break
+    _write_json(out / RESULT, stored)
+
+
+def read_result(out: Path) -> dict[str, Any] | None:
+    """A unit's ``result.json`` (None when absent or unreadable) with its paths absolute.
+
+    Relative ones are taken from the run folder. Absolute ones (result.json files written
+    before paths were relative) that lie in the folder the run was in when it ran (found
+    from the unit's own ``units/<stage>/seed-<s>`` segment) are moved to where the run
+    folder is now."""
+    result = _read_json(out / RESULT)
+    if result is None:
+        return None
+    root = run_root(out)
+    old_root = _old_root(result, Path(os.path.abspath(out)))
+    for key in RESULT_PATHS:
+        value = result.get(key)
+        if not value:
+            continue
+        if not os.path.isabs(value):
+            result[key] = os.path.normpath(root / value)
+            continue
+        if old_root is None or old_root == root:
+            continue
+        for old, new in ((old_root, root),
+                         (old_root.parent / SHARED_INPUTS, root.parent / SHARED_INPUTS)):
+            rel = os.path.relpath(value, old)
+            if not rel.startswith(".."):
+                result[key] = str(new / rel)
+                break
+    return result
+
+
+def _old_root(result: dict[str, Any], out: Path) -> Path | None:
+    """The run folder an old result.json's absolute paths were written in: the prefix
+    before this unit's ``units/<stage>/seed-<s>`` in any of them."""
+    segment = f"{os.sep}units{os.sep}{out.parent.name}{os.sep}{out.name}{os.sep}"
+    for key in RESULT_PATHS:
+        value = result.get(key)
+        if isinstance(value, str) and os.path.isabs(value) and segment in value:
+            return Path(value[:value.index(segment)])
+    return None
+
+
 LOCK_WAIT_S = 5.0
 """How long a unit waits for its folder's lock (a killed holder takes a moment to exit)."""
 
@@ -298,7 +376,7 @@ def run_unit(payload: dict[str, Any]) -> dict[str, Any]:
             raise
         result["wall_s_this_session"] = time.time() - t0
         result["worker"] = {"host": socket.gethostname(), "pid": os.getpid()}
-        _write_json(out / RESULT, result)
+        write_result(out, result)
     return result
 
 
@@ -328,7 +406,7 @@ def run_group(payloads: list[dict[str, Any]]) -> dict[str, Any]:
             result["wall_s_this_session"] = time.time() - t0
             result["worker"] = {"host": socket.gethostname(), "pid": os.getpid(),
                                 "packed_with": len(outs)}
-            _write_json(out / RESULT, result)
+            write_result(out, result)
     return {"members": results}
 
 
@@ -369,6 +447,9 @@ class _Run:
     failed: dict[Unit, str] = field(default_factory=dict)
     retries: dict[Unit, int] = field(default_factory=dict)
     only: list[str] | None = None
+    locked: dict[Unit, str] = field(default_factory=dict)
+    """Units another live run is training (refused by their locks): this run is not the
+    one that writes the report."""
 
 
 def _open_run(cfg: ExperimentConfig, out_root: str | os.PathLike[str], only: list[str] | None,
@@ -462,7 +543,7 @@ def run_experiments(
     total = sum(len(r.units) for r in runs)
     for run in runs:
         for u in run.units:
-            r = _read_json(unit_dir(run.root, u) / RESULT)
+            r = read_result(unit_dir(run.root, u))
             if r is not None:
                 run.done[u] = r
                 _emit(on_event, UnitEvent(u, "skipped", r.get("episodes", 0),
@@ -508,6 +589,16 @@ def _summaries(runs: list[_Run], report: bool) -> list[dict[str, Any]]:
     for run in runs:
         summary: dict[str, Any] = {"name": run.cfg.name,
                                    "failed": {u.key: m for u, m in run.failed.items()}}
+        if run.locked:
+            # Another live run of this experiment trains these units and writes the
+            # report when it ends; this run's view (its units "failed") would be false.
+            summary["locked"] = {u.key: m for u, m in run.locked.items()}
+            log.warning("%s: %d unit(s) are being trained by another run of this experiment; "
+                        "report.md and summary.json are left to that run", run.cfg.name,
+                        len(run.locked))
+            summary["retries"] = {u.key: n for u, n in run.retries.items()}
+            summaries.append(summary)
+            continue
         if report:
             from geonav.experiments.report import write_report
 
@@ -591,6 +682,9 @@ def _submit_ready(runs: list[_Run], backend: Backend,
             stage = run.cfg.stages[u.stage]
             if stage.init is not None:
                 pu = Unit(stage.init, u.seed)
+                if pu in run.locked:
+                    run.failed[u] = f"parent {pu.key} is being trained by another run"
+                    continue
                 if pu in run.failed:
                     run.failed[u] = f"parent {pu.key} failed"
                     continue
@@ -653,13 +747,21 @@ def _collect_group(run: _Run, group: tuple[Unit, ...], fut: Future, retries_allo
             out = unit_dir(run.root, m)
             out.mkdir(parents=True, exist_ok=True)
             _write_json(out / RETRIES, {"worker_lost": n, "last": str(err), "packed": True})
-            if _read_json(out / RESULT) is not None:  # finished before the worker died
-                run.done[m] = _read_json(out / RESULT)  # type: ignore[assignment]
+            finished = read_result(out)
+            if finished is not None:  # finished before the worker died
+                run.done[m] = finished
             elif n > retries_allowed:
                 run.failed[m] = (f"its packed group's worker died {n} times (max_retries = "
                                  f"{retries_allowed}): {err}")
         log.warning("packed group %s: its worker died (%s); retry %d of %d from the members' "
                     "checkpoints", [m.key for m in group], err, n, retries_allowed)
+        return
+    except UnitLocked as err:  # a member is being trained by another run: none started
+        for m in group:
+            run.failed[m] = run.locked[m] = str(err)
+            _emit(on_event, UnitEvent(m, "failed", 0, 0, _n_done(runs), total,
+                                      run.failed[m], run=run.cfg.name))
+        log.error("packed group %s not started: %s", [m.key for m in group], err)
         return
     except Exception as err:  # noqa: BLE001 - the group's own failure, reported
         for m in group:
@@ -695,7 +797,7 @@ def _collect(run: _Run, u: Unit, fut: Future, retries_allowed: int,
             return
         run.failed[u] = f"its worker died {n} times (max_retries = {retries_allowed}): {err}"
     except UnitLocked as err:
-        run.failed[u] = str(err)
+        run.failed[u] = run.locked[u] = str(err)
     except Exception as err:  # noqa: BLE001 - a unit's own failure, reported; the rest goes on
         trace = out / ERROR
         if not trace.exists():  # raised outside run_unit (e.g. by the backend)
