@@ -77,6 +77,18 @@ class SafetyViolation(FlightError):
     """A safety rule fired (geofence, watchdog, operator takeover)."""
 
 
+class OutputError(GeonavError):
+    """An output path cannot be written (it is not geonav's to replace, or is being written)."""
+
+
+class OutputExists(OutputError):
+    """The output exists and is not geonav's own output of that kind, or --force is missing."""
+
+
+class OutputBusy(OutputError):
+    """Another geonav process is writing the same output path."""
+
+
 class MissingExtra(GeonavError):
     """An optional dependency is not installed; the message names the pip extra."""
 

@@ -266,18 +266,41 @@ class Scene:
     # -- disk -------------------------------------------------------------------------
     def save(self, out_dir: str | os.PathLike[str], *, overwrite: bool = False,
              compress: str = "JPEG") -> Path:
-        """Write the scene package atomically (temp folder, then rename).
+        """Write the scene package atomically (temp folder, then rename), under the lock of
+        ``out_dir`` (:func:`geonav.outputs.output_lock`).
+
+        Raises:
+            SceneError: ``out_dir`` exists and may not be replaced, or cannot be written.
+            OutputBusy: another process is writing ``out_dir``.
 
         Args:
             out_dir: the package folder to create.
-            overwrite: replace an existing package at ``out_dir``.
+            overwrite: replace an existing package at ``out_dir`` (only a scene package,
+                holding only the files geonav writes into one; anything else is refused).
             compress: ortho compression: "JPEG" (quality 92, small) or "DEFLATE" (lossless).
         """
-        import rasterio
+        from geonav.outputs import check_replaceable, not_a_scene_package, output_lock
 
         out = Path(out_dir)
-        if out.exists() and not overwrite:
-            raise SceneError(f"{out} exists; pass overwrite=True (CLI: --force) to replace it")
+        with output_lock(out, "--out"):
+            # under the lock: a second writer cannot slip in between the check and the rename
+            check_replaceable(out, "scene package", force=overwrite,
+                              why_not=not_a_scene_package, error=SceneError)
+            manifest = self._write_package(Path(os.path.abspath(out)), compress)
+        self.manifest, self.path = manifest, out
+        self.__dict__.pop("_mapped", None)  # the arrays are not the new package's decoding
+        log.info("wrote scene %s to %s (%dx%d px at %.3f m)", self.name, out, self.width,
+                 self.height, self.gsd_m)
+        return out
+
+    def _write_package(self, out: Path, compress: str) -> dict[str, Any]:
+        """Write the package into a temporary sibling of ``out`` and rename it into place."""
+        import rasterio
+        from rasterio._err import CPLE_BaseError
+        from rasterio.errors import RasterioError
+
+        from geonav.outputs import replace_dir
+
         out.parent.mkdir(parents=True, exist_ok=True)
         clean_stale_temps(out.parent, out.name)
         tmp = temp_dir(out.parent, out.name)
@@ -290,14 +313,20 @@ class Scene:
             )
             rgb_opts = dict(compress=compress, quality=92) if compress.upper() == "JPEG" else \
                 dict(compress=compress, predictor=2)
-            with rasterio.open(tmp / ORTHO, "w", count=3, dtype="uint8", **profile,
-                               **rgb_opts) as dst:
-                dst.write(np.moveaxis(self.rgb, 2, 0))
-                dst.write_mask(self.mask.astype(np.uint8) * 255)
-            if self.dsm is not None:
-                with rasterio.open(tmp / DSM, "w", count=1, dtype="float32", nodata=float("nan"),
-                                   compress="DEFLATE", predictor=3, **profile) as dst:
-                    dst.write(self.dsm.astype(np.float32), 1)
+            try:
+                with rasterio.open(tmp / ORTHO, "w", count=3, dtype="uint8", **profile,
+                                   **rgb_opts) as dst:
+                    dst.write(np.moveaxis(self.rgb, 2, 0))
+                    dst.write_mask(self.mask.astype(np.uint8) * 255)
+                if self.dsm is not None:
+                    with rasterio.open(tmp / DSM, "w", count=1, dtype="float32",
+                                       nodata=float("nan"), compress="DEFLATE", predictor=3,
+                                       **profile) as dst:
+                        dst.write(self.dsm.astype(np.float32), 1)
+            except (RasterioError, CPLE_BaseError) as err:  # a full disk, a quota
+                raise SceneError(f"cannot write the scene package {out}: "
+                                 f"{' '.join(str(err).split())[:300]}; free disk space or "
+                                 "choose another output folder") from err
             manifest = self._manifest(tmp)
             try:
                 text = json.dumps(manifest, indent=2, allow_nan=False)
@@ -305,17 +334,11 @@ class Scene:
                 raise SceneError(f"scene {self.name!r}: the manifest holds a non-finite "
                                  f"number ({err}); check --ground-alt and --origin") from err
             (tmp / MANIFEST).write_text(text)
-            if out.exists():
-                shutil.rmtree(out)
-            os.replace(tmp, out)
+            replace_dir(tmp, out)
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
-        self.manifest, self.path = manifest, out
-        self.__dict__.pop("_mapped", None)  # the arrays are not the new package's decoding
-        log.info("wrote scene %s to %s (%dx%d px at %.3f m)", self.name, out, self.width,
-                 self.height, self.gsd_m)
-        return out
+        return manifest
 
     def _manifest(self, folder: Path) -> dict[str, Any]:
         xmin, ymin, xmax, ymax = self.bounds_m

@@ -60,10 +60,21 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    "time (default none)")
     p.add_argument("--seed", type=nonneg_int, default=0)
     p.add_argument("-o", "--out", required=True, help="task set JSON to write")
+    p.add_argument("--force", action="store_true",
+                   help="replace an existing task file (only one geonav wrote)")
     p.set_defaults(handler=run_make)
 
 
 def run_make(args: argparse.Namespace) -> int:
+    from geonav.outputs import check_replaceable, not_a_task_file, output_lock
+
+    with output_lock(args.out, "-o"):
+        check_replaceable(args.out, "task file", force=getattr(args, "force", False),
+                          why_not=not_a_task_file)
+        return _make(args)
+
+
+def _make(args: argparse.Namespace) -> int:
     from geonav.camera import Camera
     from geonav.scene import Scene
     from geonav.tasks import sample_meta_tasks, whole_scene_tasks

@@ -82,6 +82,7 @@ def fly_result(cfg: ExperimentConfig, root: Path, progress: Any = None) -> dict[
                    track_png=None if flight.png_path is None else str(flight.png_path),
                    latency_ms_p50=float(np.median(flight.latencies_ms))
                    if flight.latencies_ms else None)
+    out = Path(flight.record_path).parent  # flight-2, ... when an earlier record is there
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     report = root / "report.md"
     if report.exists():
@@ -98,7 +99,7 @@ def fly_result(cfg: ExperimentConfig, root: Path, progress: Any = None) -> dict[
             f"{'reached' if flight.success else 'not reached'} after {flight.steps} steps "
             f"({flight.reason}); ended with {flight.end_action}, "
             f"{'disarmed' if flight.disarmed else 'NOT disarmed'}. Record: "
-            f"`flight/{Path(summary['record']).name}`.\n"
+            f"`{out.name}/{Path(summary['record']).name}`.\n"
             + (f"\n![flight track]({rel})\n" if rel else ""))
         report.write_text(text)
     if flight.outcome == "interrupted" and flight.signal_name:

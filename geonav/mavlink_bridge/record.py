@@ -26,15 +26,23 @@ log = logging.getLogger(__name__)
 class FlightRecorder:
     """Writes ``flight.jsonl`` into ``out_dir`` as the flight goes.
 
+    A record is never overwritten: when ``out_dir`` already holds something (an earlier
+    flight), the record goes to the first free ``out_dir-2``, ``out_dir-3``, ...
+    (:attr:`out_dir` says which).
+
     Args:
         out_dir: folder for the record (created).
     """
 
     def __init__(self, out_dir: str | Path) -> None:
-        self.out_dir = Path(out_dir)
-        self.out_dir.mkdir(parents=True, exist_ok=True)
+        from geonav.outputs import claim_new_folder
+
+        self.out_dir, fd = claim_new_folder(out_dir, "flight.jsonl")
+        if self.out_dir != Path(out_dir):
+            log.warning("%s already holds a flight record; this flight goes to %s",
+                        out_dir, self.out_dir)
         self.path = self.out_dir / "flight.jsonl"
-        self._f = self.path.open("w", encoding="utf-8")
+        self._f = open(fd, "w", encoding="utf-8")  # noqa: SIM115 - closed by close()
         self._t0 = time.monotonic()
         self.track_xy: list[tuple[float, float]] = []
         self.track_phase: list[str] = []

@@ -333,6 +333,18 @@ def check_finite_losses(rec: dict[str, Any]) -> None:
             f"(max_grad_norm; meta_max_grad_norm for meta-training)")
 
 
+class _ReleaseLock(Callback):
+    """Releases a run folder's write lock when training ends (also after an error)."""
+
+    def __init__(self, lock: Any) -> None:
+        self.lock = lock
+
+    def on_train_end(self, result: Any) -> None:
+        if self.lock is not None:
+            self.lock.__exit__(None, None, None)
+            self.lock = None
+
+
 class A3CTrainer:
     """Trains an :class:`ActorCritic` with A3C on environments from ``env_factory``.
 
@@ -394,10 +406,7 @@ class A3CTrainer:
             raise ConfigError(f"the network has {self.net_cfg.n_actions} actions, the env "
                               f"{self.env.action_space.n}")
         self.out_dir = Path(out_dir) if out_dir is not None else None
-        if self.out_dir is not None and self.ckpt is None and \
-                (self.out_dir / "metrics.csv").exists():
-            raise ConfigError(f"run folder {self.out_dir} already holds a run; pass --resume "
-                              f"{self.out_dir / 'checkpoints' / 'latest.pt'} or another --out")
+        self._check_new_run_folder()
         self.frozen = build_frozen_encoder(self.net_cfg)
         torch.manual_seed(cfg.seed)
         self.model = ActorCritic(self.net_cfg)
@@ -466,9 +475,39 @@ class A3CTrainer:
                 "start_episode": self.start_episode, "mp_context": self.mp_context,
                 "augment": _augment_of(self.env)}
 
+    def _check_new_run_folder(self) -> None:
+        """A new run (no resume) refuses a folder whose files it would overwrite."""
+        if self.out_dir is None or self.ckpt is not None:
+            return
+        from geonav.outputs import run_folder_conflicts
+
+        names, ours = run_folder_conflicts(self.out_dir)
+        if names and ours:
+            raise ConfigError(f"run folder {self.out_dir} already holds a run; pass --resume "
+                              f"{self.out_dir / 'checkpoints' / 'latest.pt'} or another --out")
+        if names:
+            raise ConfigError(f"run folder {self.out_dir} holds {', '.join(names)}, which "
+                              "geonav did not write and a run would overwrite; choose another "
+                              "--out (a new or empty folder)")
+
     def _prepare_out_dir(self) -> list[Callback]:
         if self.out_dir is None:
             return []
+        from geonav.outputs import output_lock
+
+        # Held until on_train_end: a second run into this folder is refused, not mixed in.
+        lock = output_lock(self.out_dir, "--out")
+        lock.__enter__()
+        try:
+            self._check_new_run_folder()  # again: another run may have written it since
+            cbs = self._write_run_config()
+        except BaseException:
+            lock.__exit__(None, None, None)
+            raise
+        return [_ReleaseLock(lock), *cbs]
+
+    def _write_run_config(self) -> list[Callback]:
+        assert self.out_dir is not None
         (self.out_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
         cfg_path = self.out_dir / "config.json"
         if cfg_path.exists() and self.ckpt is not None:  # keep the original beside the resume

@@ -31,6 +31,7 @@ from affine import Affine
 
 from geonav.errors import GeonavWarning, IngestError, NoOverlap
 from geonav.geo import LonLat, scene_crs
+from geonav.outputs import check_replaceable, not_a_scene_package, output_lock
 from geonav.scene import Scene, clean_stale_temps, temp_dir
 from geonav.tiles.raster import (
     RasterSource,
@@ -270,7 +271,7 @@ def heights_above_ground(dsm_abs: np.ndarray, ground_alt_m: float | None,
     if below > 0.01:
         warnings.warn(f"the DSM lies more than {BELOW_GROUND_TOL_M:g} m below the ground on "
                       f"{below:.1%} of the scene; those heights are set to 0", GeonavWarning,
-                      stacklevel=3)
+                      stacklevel=4)
     height = np.where(valid, np.maximum(diff, 0.0), np.nan).astype(np.float32)
     return height, ground_ref
 
@@ -358,7 +359,7 @@ def ingest(
             window of each file is read.
         attribution: the licence/attribution text the user holds for the imagery;
             default: the attributions the sources carry (fetch sidecar, MBTiles metadata).
-        overwrite: replace an existing package.
+        overwrite: replace an existing scene package (never any other folder).
         compress: ortho compression, "JPEG" or "DEFLATE".
         extra_manifest: more provenance for ``scene.json`` (e.g. synthetic parameters).
         progress: callback (phase, fraction).
@@ -374,8 +375,6 @@ def ingest(
         The written scene (also opened-equivalent: arrays in memory).
     """
     out = Path(out)
-    if out.exists() and not overwrite:
-        raise IngestError(f"{out} exists; use --force to replace it")
     check_writable_folder(out)
     if not name or "/" in name:
         raise IngestError(f"scene name {name!r} must be a non-empty name without '/'")
@@ -388,6 +387,28 @@ def ingest(
     if dem is not None and dsm is None:
         raise IngestError("--dem needs --dsm: the DEM is the ground the DSM heights are "
                           "measured from")
+    # The lock is held from here to the rename: a second ingest into the same --out is
+    # refused now, not silently replaced minutes later.
+    with output_lock(out, "--out"):
+        check_replaceable(out, "scene package", force=overwrite,
+                          why_not=not_a_scene_package, error=IngestError)
+        return _ingest(
+            sources, name=name, out=out, dsm=dsm, dem=dem, ground_alt_m=ground_alt_m,
+            gsd_m=gsd_m, origin=origin, bbox_lonlat=bbox_lonlat, attribution=attribution,
+            overwrite=overwrite, compress=compress, extra_manifest=extra_manifest,
+            progress=progress, tms=tms, zoom=zoom, rgb_bands=rgb_bands, dsm_units=dsm_units,
+            memory_budget_mb=memory_budget_mb)
+
+
+def _ingest(
+    sources: Sequence[str | os.PathLike[str] | RasterSource], *, name: str, out: Path,
+    dsm: Any, dem: Any, ground_alt_m: float | None, gsd_m: float | None,
+    origin: LonLat | None, bbox_lonlat: tuple[float, float, float, float] | None,
+    attribution: str, overwrite: bool, compress: str, extra_manifest: dict[str, Any] | None,
+    progress: Progress | None, tms: bool, zoom: int | None, rgb_bands: Sequence[int] | None,
+    dsm_units: str | None, memory_budget_mb: float | None,
+) -> Scene:
+    """The body of :func:`ingest`, under the lock of ``out``."""
     rasters = [s if isinstance(s, RasterSource) else
                open_source(s, tms=tms, zoom=zoom, bbox_lonlat=bbox_lonlat, progress=progress,
                            rgb_bands=rgb_bands, target_gsd_m=gsd_m,
@@ -441,7 +462,7 @@ def ingest(
     )
     rotated = any(r.transform.b or r.transform.d for r in rasters)
     for message in check_coverage(scene) + _mask_coverage(mask, bbox_lonlat, rotated):
-        warnings.warn(f"scene {name}: {message}", GeonavWarning, stacklevel=2)
+        warnings.warn(f"scene {name}: {message}", GeonavWarning, stacklevel=3)
     scene.save(out, overwrite=overwrite, compress=compress)
     if progress:
         progress("write", 1.0)
@@ -483,10 +504,24 @@ def ingest_synthetic(
         gsd_m: ground sample distance in metres per pixel.
         seed: generator seed (same seed, same scene).
         origin: scene centre (default: a fixed place per kind).
-        overwrite: replace an existing package.
+        overwrite: replace an existing scene package (never any other folder).
         keep_sources: a folder to keep the two source GeoTIFFs in.
         progress: callback (phase, fraction).
     """
+    check_writable_folder(Path(out))
+    with output_lock(out, "--out"):  # held through the synthesis: minutes for a big scene
+        check_replaceable(out, "scene package", force=overwrite,
+                          why_not=not_a_scene_package, error=IngestError)
+        return _ingest_synthetic(kind, out=out, name=name, size_m=size_m, gsd_m=gsd_m,
+                                 seed=seed, origin=origin, overwrite=overwrite,
+                                 keep_sources=keep_sources, progress=progress)
+
+
+def _ingest_synthetic(kind: str, *, out: str | os.PathLike[str], name: str | None,
+                      size_m: float, gsd_m: float, seed: int, origin: LonLat | None,
+                      overwrite: bool, keep_sources: str | os.PathLike[str] | None,
+                      progress: Progress | None) -> Scene:
+    """The body of :func:`ingest_synthetic`, under the lock of ``out``."""
     import tempfile
 
     import rasterio

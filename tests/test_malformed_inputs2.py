@@ -1,0 +1,260 @@
+"""Malformed and hostile inputs, round 2 (issue 33).
+
+Nothing of the user's is ever destroyed (``--force`` replaces only geonav's own output
+of that kind; a second writer of the same output is refused; flight records are never
+overwritten), checkpoints that cannot fly are refused, every expected failure is one
+line, numbers are bounded where they enter, and a scene package is cross-checked on
+open. Each case failed on the code before this round.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+from affine import Affine
+
+from geonav.cli import main
+from geonav.errors import GeonavWarning, OutputBusy
+
+rasterio = pytest.importorskip("rasterio")
+
+UTM31 = "EPSG:32631"
+X0, Y0 = 594000.0, 5754000.0  # Rotterdam in UTM 31N
+
+
+def _write(path: Path, data: np.ndarray, crs: str, transform: Affine, **kw) -> Path:
+    data = data if data.ndim == 3 else data[None]
+    with rasterio.open(path, "w", driver="GTiff", width=data.shape[2], height=data.shape[1],
+                       count=data.shape[0], dtype=data.dtype, crs=crs, transform=transform,
+                       **kw) as dst:
+        dst.write(data)
+    return path
+
+
+def _texture(h: int, w: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return (60 + rng.integers(0, 80, (3, h, w))).astype(np.uint8)
+
+
+@pytest.fixture(scope="module")
+def utm_tif(tmp_path_factory) -> Path:
+    """160 x 160 m of texture at 1 m in UTM 31N."""
+    d = tmp_path_factory.mktemp("utm")
+    return _write(d / "utm.tif", _texture(160, 160), UTM31, Affine(1, 0, X0, 0, -1, Y0))
+
+
+def _cli(argv: list, capsys) -> tuple[int, str, str]:
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", GeonavWarning)
+            rc = main([str(a) for a in argv])
+    except SystemExit as exit_:  # argparse refuses a value: exit 2 after one line
+        rc = exit_.code
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+def _one_line_error(rc: int, err: str, needle: str = "") -> None:
+    lines = [ln for ln in err.strip().splitlines() if not ln.startswith("warning: ")]
+    assert rc == 2, err
+    assert len(lines) == 1 and "error" in lines[0], err
+    assert "Traceback" not in err
+    assert needle in lines[0], err
+
+
+def _ingest_argv(src: Path, out: Path, *extra) -> list:
+    return ["tiles", "ingest", src, "--name", "A", "--out", out, "--compress", "DEFLATE", *extra]
+
+
+def _tree(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*"))
+            if p.is_file()}
+
+
+# -- 1. nothing of the user's is destroyed --------------------------------------------------
+
+def test_force_refuses_a_folder_that_is_not_a_scene_package(tmp_path, capsys, utm_tif):
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "thesis.tex").write_text("three years of work")
+    (mine / "data").mkdir()
+    (mine / "data" / "x.csv").write_text("1,2,3")
+    before = _tree(mine)
+    rc, _, err = _cli(_ingest_argv(utm_tif, mine, "--force"), capsys)
+    _one_line_error(rc, err, "not a scene package")
+    assert "choose another output path" in err
+    assert _tree(mine) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mine"]  # no temp, no lock left
+
+
+def test_force_out_dot_never_wipes_the_working_folder(tmp_path, capsys, utm_tif, monkeypatch):
+    (tmp_path / "notes.txt").write_text("keep me")
+    monkeypatch.chdir(tmp_path)
+    rc, _, err = _cli(_ingest_argv(utm_tif, ".", "--force"), capsys)
+    _one_line_error(rc, err, "refusing to replace")
+    assert (tmp_path / "notes.txt").read_text() == "keep me"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]
+
+
+def test_force_refuses_a_scene_package_holding_the_users_files(tmp_path, capsys, utm_tif):
+    out = tmp_path / "S"
+    rc, _, err = _cli(_ingest_argv(utm_tif, out), capsys)
+    assert rc == 0, err
+    (out / "my_notes.md").write_text("field notes")
+    rc, _, err = _cli(_ingest_argv(utm_tif, out, "--force"), capsys)
+    _one_line_error(rc, err, "files geonav did not write (my_notes.md)")
+    assert (out / "my_notes.md").read_text() == "field notes"
+    (out / "my_notes.md").unlink()
+    rc, _, err = _cli(_ingest_argv(utm_tif, out, "--force"), capsys)  # its own: replaced
+    assert rc == 0, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["S"]
+
+
+_HOLD_LOCK = """
+import sys, time
+from geonav.outputs import output_lock
+with output_lock(sys.argv[1]):
+    print("locked", flush=True)
+    sys.stdin.readline()
+"""
+
+
+def _holding_lock(target: Path) -> subprocess.Popen:
+    proc = subprocess.Popen([sys.executable, "-c", _HOLD_LOCK, str(target)],
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "locked"
+    return proc
+
+
+def test_a_second_ingest_into_the_same_out_is_refused_at_once(tmp_path, capsys, utm_tif):
+    out = tmp_path / "S"
+    proc = _holding_lock(out)  # another geonav, minutes into its ingest
+    try:
+        rc, _, err = _cli(_ingest_argv(utm_tif, out), capsys)
+        _one_line_error(rc, err, f"pid {proc.pid}")
+        assert "being written by another geonav" in err and not out.exists()
+        rc, _, err = _cli(_ingest_argv(utm_tif, out, "--force"), capsys)
+        _one_line_error(rc, err, "being written by another geonav")
+    finally:
+        proc.communicate("\n", timeout=30)
+    rc, _, err = _cli(_ingest_argv(utm_tif, out), capsys)  # the first is done: free again
+    assert rc == 0, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["S"]
+
+
+def test_lock_of_a_killed_writer_is_free(tmp_path):
+    from geonav.outputs import lock_path, output_lock
+
+    proc = _holding_lock(tmp_path / "S")
+    proc.kill()
+    proc.wait(30)
+    assert lock_path(tmp_path / "S").exists()  # left behind by SIGKILL
+    with output_lock(tmp_path / "S"):
+        with output_lock(tmp_path / "S"):  # re-entrant in one process
+            pass
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_lock_busy_is_an_output_error(tmp_path):
+    from geonav.outputs import output_lock
+
+    proc = _holding_lock(tmp_path / "x.json")
+    try:
+        with pytest.raises(OutputBusy, match="choose another -o path"):
+            with output_lock(tmp_path / "x.json", "-o"):
+                pass
+    finally:
+        proc.communicate("\n", timeout=30)
+
+
+def test_flight_records_are_never_overwritten(tmp_path):
+    from geonav.mavlink_bridge.record import FlightRecorder
+
+    first = FlightRecorder(tmp_path / "flight")
+    first.write("header", n=1)
+    first.close()
+    record = (tmp_path / "flight" / "flight.jsonl").read_bytes()
+    second = FlightRecorder(tmp_path / "flight")
+    second.write("header", n=2)
+    second.close()
+    assert second.out_dir == tmp_path / "flight-2"
+    assert (tmp_path / "flight" / "flight.jsonl").read_bytes() == record
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "track.png").write_bytes(b"my picture")
+    third = FlightRecorder(tmp_path / "mine")
+    third.close()
+    assert third.out_dir == tmp_path / "mine-2"
+    assert (tmp_path / "mine" / "track.png").read_bytes() == b"my picture"
+
+
+@pytest.fixture(scope="module")
+def package(tmp_path_factory, utm_tif) -> Path:
+    from geonav.tiles.ingest import ingest
+
+    d = tmp_path_factory.mktemp("pkg")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", GeonavWarning)
+        ingest([utm_tif], name="P", out=d / "P", compress="DEFLATE")
+    return d / "P"
+
+
+def _make_tasks(package: Path, out: Path, *extra) -> list:
+    return ["tasks", "make", package, "--kind", "scene", "--alts", "15", "--step", "10",
+            "--max-blind", "none", "-o", out, *extra]
+
+
+def test_tasks_make_never_replaces_a_file_it_did_not_write(tmp_path, capsys, package):
+    theirs = tmp_path / "tasks.json"
+    theirs.write_text('{"my": "data"}')
+    rc, _, err = _cli(_make_tasks(package, theirs), capsys)
+    _one_line_error(rc, err, "pass --force")
+    rc, _, err = _cli(_make_tasks(package, theirs, "--force"), capsys)
+    _one_line_error(rc, err, "not a geonav task file")
+    assert theirs.read_text() == '{"my": "data"}'
+    ours = tmp_path / "ours.json"
+    rc, _, err = _cli(_make_tasks(package, ours), capsys)
+    assert rc == 0, err
+    rc, _, err = _cli(_make_tasks(package, ours), capsys)
+    _one_line_error(rc, err, "exists; pass --force")
+    rc, _, err = _cli(_make_tasks(package, ours, "--force", "--seed", "3"), capsys)
+    assert rc == 0, err
+    assert json.loads(ours.read_text())["tasks"]
+
+
+def test_training_refuses_a_folder_of_the_users_files(tmp_path):
+    from geonav.errors import ConfigError
+    from geonav.policy.a3c import train_a3c
+    from geonav.policy.config import A3CConfig
+    from geonav.policy.testing import tiny_env_factory, tiny_net
+
+    (tmp_path / "config.json").write_text('{"my": "settings"}')
+    with pytest.raises(ConfigError, match="holds config.json, which geonav did not write"):
+        train_a3c(tiny_env_factory(), tiny_net(), A3CConfig(episodes=2, workers=0),
+                  out_dir=tmp_path)
+    assert (tmp_path / "config.json").read_text() == '{"my": "settings"}'
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["config.json"]
+
+
+def test_two_trainings_into_one_out_do_not_mix(tmp_path):
+    from geonav.policy.a3c import train_a3c
+    from geonav.policy.config import A3CConfig
+    from geonav.policy.testing import tiny_env_factory, tiny_net
+
+    run = tmp_path / "run"
+    proc = _holding_lock(run)  # another training into the same folder
+    try:
+        with pytest.raises(OutputBusy, match="being written by another geonav"):
+            train_a3c(tiny_env_factory(), tiny_net(), A3CConfig(episodes=2, workers=0),
+                      out_dir=run)
+    finally:
+        proc.communicate("\n", timeout=30)
+    assert not (run / "metrics.csv").exists() and not (run / "config.json").exists()
+    train_a3c(tiny_env_factory(), tiny_net(), A3CConfig(episodes=2, workers=0), out_dir=run)
+    assert (run / "checkpoints" / "final.pt").is_file()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]  # lock released
