@@ -193,6 +193,29 @@ def not_a_task_file(path: Path) -> str | None:
     return None
 
 
+#: Metadata that marks a picture as geonav's, by file format (matplotlib's keys).
+PICTURE_METADATA = {"png": {"Software": "geonav"}, "pdf": {"Creator": "geonav"},
+                    "svg": {"Creator": "geonav"}}
+
+
+def not_a_geonav_picture(path: Path) -> str | None:
+    """Why ``path`` is not a picture geonav drew (None when it is one)."""
+    if path.is_symlink() or not path.is_file():
+        return "it is not a plain file"
+    if path.suffix.lower().lstrip(".") not in PICTURE_METADATA:
+        return "geonav cannot tell whether it drew it"
+    try:
+        with path.open("rb") as f:
+            head = f.read(1 << 20)
+            f.seek(max(0, path.stat().st_size - (1 << 16)))
+            tail = f.read()
+    except OSError as err:
+        return f"it cannot be read ({err.strerror})"
+    if b"geonav" not in head and b"geonav" not in tail:
+        return "it is not a picture geonav drew"
+    return None
+
+
 #: What a training run writes into its run folder (and so would overwrite there).
 RUN_FILES = ("config.json", "metrics.csv", "eval.csv", "learning_curve.png", "checkpoints")
 

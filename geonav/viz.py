@@ -5,10 +5,12 @@ from __future__ import annotations
 import os
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from geonav.camera import Camera
+from geonav.errors import ConfigError
 from geonav.scene import Scene
 from geonav.tasks import Cell, NavTask, TaskSet
 
@@ -113,8 +115,32 @@ def draw_scene(
     if tracks or (scene.dsm is not None and footprints_at):
         ax.legend(loc="lower right", fontsize=7)
     fig.tight_layout()
+    try:
+        return save_figure(fig, out)
+    finally:
+        plt.close(fig)
+
+
+def save_figure(fig: Any, out: str | os.PathLike[str]) -> Path:
+    """Save a matplotlib figure atomically (temp sibling, then rename), marked as geonav's.
+
+    Raises:
+        ConfigError: matplotlib cannot write pictures of ``out``'s suffix.
+    """
+    from geonav.outputs import PICTURE_METADATA
+
     out = Path(out)
+    fmt = out.suffix.lower().lstrip(".")
+    known = fig.canvas.get_supported_filetypes()
+    if fmt not in known:
+        raise ConfigError(f"{out}: cannot draw a '.{fmt}' picture; end the name in one of "
+                          f"{', '.join('.' + k for k in sorted(known))}")
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out)
-    plt.close(fig)
+    tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
+    try:
+        fig.savefig(tmp, format=fmt, metadata=PICTURE_METADATA.get(fmt))
+        os.replace(tmp, out)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     return out

@@ -258,3 +258,20 @@ def test_two_trainings_into_one_out_do_not_mix(tmp_path):
     train_a3c(tiny_env_factory(), tiny_net(), A3CConfig(episodes=2, workers=0), out_dir=run)
     assert (run / "checkpoints" / "final.pt").is_file()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]  # lock released
+
+
+def test_preview_replaces_only_its_own_picture(tmp_path, capsys, package):
+    theirs = tmp_path / "photo.png"
+    theirs.write_bytes(b"\x89PNG\r\n\x1a\n holiday")
+    rc, _, err = _cli(["tiles", "preview", package, "-o", theirs, "--force"], capsys)
+    _one_line_error(rc, err, "not a picture geonav drew")
+    assert theirs.read_bytes() == b"\x89PNG\r\n\x1a\n holiday"
+    ours = tmp_path / "p.png"
+    assert _cli(["tiles", "preview", package, "-o", ours, "--max-px", "200"], capsys)[0] == 0
+    rc, _, err = _cli(["tiles", "preview", package, "-o", ours], capsys)
+    _one_line_error(rc, err, "exists; pass --force")
+    assert _cli(["tiles", "preview", package, "-o", ours, "--max-px", "200", "--force"],
+                capsys)[0] == 0
+    rc, _, err = _cli(["tiles", "preview", package, "-o", tmp_path / "p.xyz"], capsys)
+    _one_line_error(rc, err, "cannot draw a '.xyz' picture")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["p.png", "photo.png"]

@@ -61,6 +61,8 @@ def add_parsers(tsub: argparse._SubParsersAction) -> None:
     p.add_argument("--alts", type=positive_floats, default=(300.0, 75.0, 45.0, 15.0),
                    help="altitudes whose footprints are drawn (default 300,75,45,15)")
     p.add_argument("--max-px", type=positive_int, default=1600, help="image pixels across (1600)")
+    p.add_argument("--force", action="store_true",
+                   help="replace an existing picture (only one geonav drew)")
     p.set_defaults(handler=run_preview)
 
 
@@ -117,6 +119,14 @@ def run_info(args: argparse.Namespace) -> int:
 
 
 def run_preview(args: argparse.Namespace) -> int:
+    from geonav.outputs import check_replaceable, not_a_geonav_picture, output_lock
+
+    with output_lock(args.out, "-o"):
+        check_replaceable(args.out, "picture", force=args.force, why_not=not_a_geonav_picture)
+        return _preview(args)
+
+
+def _preview(args: argparse.Namespace) -> int:
     from geonav.scene import Scene
     from geonav.tasks import TaskSet
     from geonav.viz import draw_scene
