@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -42,6 +43,22 @@ class ConvergenceCriterion:
                              f"{self.threshold}")
         if not 0.0 < self.eval_threshold <= 1.0:
             raise ValueError(f"eval_threshold must lie in (0, 1], got {self.eval_threshold}")
+
+
+def convergence_criterion(values: dict[str, Any],
+                          where: str = "[convergence]") -> ConvergenceCriterion:
+    """A :class:`ConvergenceCriterion` from a TOML table: unknown keys, values of the wrong
+    type and values out of range are one ConfigError naming ``where`` and the field."""
+    from geonav.configcheck import check_fields
+    from geonav.errors import ConfigError
+
+    if not isinstance(values, dict):
+        raise ConfigError(f"{where} must be a table, got {type(values).__name__} {values!r}")
+    checked = check_fields(ConvergenceCriterion, values, where)
+    try:
+        return ConvergenceCriterion(**checked)
+    except ValueError as err:
+        raise ConfigError(f"{where}: {err}") from err
 
 
 @dataclass(frozen=True)

@@ -174,7 +174,8 @@ tasks = "A_meta"
 algo = "a3c"
 episodes = 20
 workers = 0
-bogus = 1
+engine = "async"
+device = "cuda"
 """
     (tmp_path / "faults.toml").write_text(text)
     cfg = load_config(tmp_path / "faults.toml")
@@ -201,9 +202,10 @@ bogus = 1
     assert killed, "the unit finished before it could be killed"
     assert summary["retries"] == {"pre/seed-0": 1}
     assert list(summary["failed"]) == ["bad/seed-0"]
-    assert summary["failed"]["bad/seed-0"].startswith("ConfigError: stage 'bad': unknown a3c")
+    assert summary["failed"]["bad/seed-0"].startswith("ConfigError: the async engine runs on "
+                                                      "the CPU")
     trace = (unit.parent.parent / "bad" / "seed-0" / "error.txt").read_text()
-    assert "Traceback" in trace and "unknown a3c option(s) ['bogus']" in trace
+    assert "Traceback" in trace and "device 'cuda' needs engine = 'batched'" in trace
     episodes = [int(r["episode"]) for r in _metrics(unit / "metrics.csv")]
     assert episodes == list(range(1, 301))  # nothing lost, nothing twice
     resumed = json.loads((unit / "config.json").read_text())

@@ -262,19 +262,19 @@ def _jsonable(v: Any) -> Any:
 
 
 def _build(cls: type, name: str, d: Any, where: str) -> Any:
+    """A spec dataclass from its TOML table, every value checked against the field's type
+    (:mod:`geonav.configcheck`), so a wrong type is one line naming the table and key."""
+    from geonav.configcheck import build
+
     if not isinstance(d, dict):
         raise ConfigError(f"{where} must be a table")
     known = {f.name for f in dataclasses.fields(cls)} - {"name"}
     unknown = sorted(set(d) - known)
     if unknown:
         raise ConfigError(f"{where}: unknown key(s) {unknown}; known: {sorted(known)}")
-    kwargs = dict(d)
-    for k, v in kwargs.items():
-        if isinstance(v, list):
-            kwargs[k] = tuple(v)
     try:
-        return cls(name=name, **kwargs)
-    except TypeError as err:
+        return build(cls, d, where, name=name)
+    except TypeError as err:  # a required key missing
         raise ConfigError(f"{where}: {err}") from err
 
 
@@ -297,10 +297,13 @@ def parse_config(data: dict[str, Any], source: str = "") -> ExperimentConfig:
     compare = data.get("compare", [])
     if not isinstance(compare, list) or not all(isinstance(c, dict) for c in compare):
         raise ConfigError(f"{source}: compare must be [[compare]] tables")
-    try:
-        conv = ConvergenceCriterion(**data.get("convergence", {}))
-    except (TypeError, ValueError) as err:
-        raise ConfigError(f"{source} [convergence]: {err}") from err
+    from geonav.configcheck import coerce
+    from geonav.convergence import convergence_criterion
+
+    conv = convergence_criterion(data.get("convergence", {}), f"{source} [convergence]".strip())
+    for key, tp in (("name", str), ("seeds", tuple[int, ...]), ("eval_starts", int)):
+        if key in data:
+            data = {**data, key: coerce(tp, data[key], f"{source} {key}".strip())}
     scenes = {k: _build(SceneSpec, k, v, f"[scenes.{k}]") for k, v in
               data.get("scenes", {}).items()}
     tasks = {k: _build(TaskSpec, k, v, f"[tasks.{k}]") for k, v in data.get("tasks", {}).items()}
@@ -385,6 +388,7 @@ def _check(cfg: ExperimentConfig) -> None:
             AugmentConfig.from_dict(st.options["augment"], f"[stages.{st.name}] augment")
         if "base_loss" in st.options:  # ISAR's base loss, checked before any unit runs
             _check_base_loss(st)
+        _check_options(cfg, st)
     for key in cfg.stages:  # no cycles
         seen, cur = set(), key
         while cur is not None:
@@ -397,6 +401,25 @@ def _check(cfg: ExperimentConfig) -> None:
         if missing:
             raise ConfigError(f"[[compare]] {c.name!r}: methods {missing} are not stages")
     check_noise(cfg)
+
+
+def _check_options(cfg: ExperimentConfig, st: StageSpec) -> None:
+    """The stage's options built into the configs its units will use (unknown options, a
+    value of the wrong type or out of range), before any unit runs."""
+    from geonav.experiments.stages import TRAINERS, check_stage
+
+    if (st.mode, st.algo) not in TRAINERS:
+        known = sorted(f"{m}/{a}" for m, a in TRAINERS)
+        raise ConfigError(f"[stages.{st.name}] mode {st.mode!r} with algo {st.algo!r} is not "
+                          f"available; available: {known}")
+    tspec = cfg.tasks[st.tasks]
+    obs = tspec.obs_size_px
+    if tspec.path and Path(tspec.path).exists():
+        from geonav.tasks import TaskSet
+
+        obs = TaskSet.load(tspec.path).camera.size_px
+    check_stage(dict(stage=st.name, mode=st.mode, algo=st.algo, episodes=st.episodes,
+                     workers=st.workers, options=dict(st.options), seed=cfg.seeds[0]), obs)
 
 
 def _check_base_loss(st: StageSpec) -> None:

@@ -130,34 +130,101 @@ def _engine_opts(rest: dict[str, Any]) -> dict[str, Any]:
             "device": rest.pop("device", None)}
 
 
-def _algo_cfg(p: dict[str, Any]) -> tuple[Any, Any, dict[str, Any]]:
-    """(base config, NetConfig or None, remaining options) from a payload's options."""
+def _where(p: dict[str, Any]) -> str:
+    """How messages name a payload's stage: its TOML table."""
+    return f"[stages.{p.get('stage')}]"
+
+
+def _algo_cfg(p: dict[str, Any], obs_size_px: int | None = None
+              ) -> tuple[Any, Any, dict[str, Any]]:
+    """(base config, NetConfig or None, remaining options) from a payload's options;
+    ``obs_size_px`` (else read from the payload's task set) fills a [net] that lacks it."""
     from geonav.policy.config import NetConfig, from_dict
     from geonav.policy.meta_config import BASE_CONFIGS, base_config
 
     opts = dict(p["options"])
+    net_opts = {k: opts.pop(k) for k in list(opts) if k in NetConfig.__dataclass_fields__}
+    if net_opts and "obs_size_px" not in net_opts:
+        if obs_size_px is None:
+            from geonav.tasks import TaskSet
+
+            obs_size_px = TaskSet.load(p["tasks"]).camera.size_px
+        net_opts["obs_size_px"] = obs_size_px
+    fixed = {"episodes": p["episodes"], "workers": p["workers"], "seed": p["seed"]}
     if p["algo"] == "ppo":
         from geonav.policy.batched.ppo import PPOConfig
 
-        net_opts = {k: opts.pop(k) for k in list(opts) if k in NetConfig.__dataclass_fields__}
-        if net_opts and "obs_size_px" not in net_opts:
-            from geonav.tasks import TaskSet
-
-            net_opts["obs_size_px"] = TaskSet.load(p["tasks"]).camera.size_px
         ppo_opts = {k: opts.pop(k) for k in list(opts) if k in PPOConfig.__dataclass_fields__}
-        cfg = from_dict(PPOConfig, {**ppo_opts, "episodes": p["episodes"],
-                                    "workers": p["workers"], "seed": p["seed"]})
-        return cfg, (from_dict(NetConfig, net_opts) if net_opts else None), opts
-    net_opts = {k: opts.pop(k) for k in list(opts) if k in NetConfig.__dataclass_fields__}
-    if net_opts and "obs_size_px" not in net_opts:
-        from geonav.tasks import TaskSet
+        cfg = from_dict(PPOConfig, {**ppo_opts, **fixed}, _where(p))
+    else:
+        known = BASE_CONFIGS[p["algo"]].__dataclass_fields__
+        base_opts = {k: opts.pop(k) for k in list(opts) if k in known}
+        cfg = base_config(p["algo"], {**base_opts, **fixed}, _where(p))
+    return cfg, (from_dict(NetConfig, net_opts, _where(p)) if net_opts else None), opts
 
-        net_opts["obs_size_px"] = TaskSet.load(p["tasks"]).camera.size_px
-    known = BASE_CONFIGS[p["algo"]].__dataclass_fields__
-    base_opts = {k: opts.pop(k) for k in list(opts) if k in known}
-    cfg = base_config(p["algo"], {**base_opts, "episodes": p["episodes"],
-                                  "workers": p["workers"], "seed": p["seed"]})
-    return cfg, (from_dict(NetConfig, net_opts) if net_opts else None), opts
+
+ENGINE_TYPES: dict[str, Any] = {"engine": str, "batch": int | None, "device": str | None,
+                                "pack": bool}
+"""The engine options of a stage (popped by :func:`_engine_opts`) and their types."""
+
+
+def _meta_cfg(p: dict[str, Any], rest: dict[str, Any]) -> Any:
+    """The MetaConfig of a meta-train unit from its remaining options (popped)."""
+    from geonav.policy.config import from_dict
+    from geonav.policy.meta_config import MetaConfig
+
+    meta_opts = {k: rest.pop(k) for k in list(rest) if k in MetaConfig.__dataclass_fields__}
+    if rest:
+        raise ConfigError(f"stage {p.get('stage')!r}: unknown meta-train option(s) "
+                          f"{sorted(rest)}")
+    return from_dict(MetaConfig, {**meta_opts, "episodes": p["episodes"],
+                                  "workers": p["workers"], "seed": p["seed"]}, _where(p))
+
+
+def _curriculum_cfg(p: dict[str, Any], rest: dict[str, Any]) -> Any:
+    """The CurriculumConfig of a curriculum unit from its remaining options (popped)."""
+    from geonav.policy.config import from_dict
+    from geonav.policy.meta_config import CurriculumConfig
+
+    cur_opts = {k: rest.pop(k) for k in list(rest)
+                if k in CurriculumConfig.__dataclass_fields__}
+    if rest:
+        raise ConfigError(f"stage {p.get('stage')!r}: unknown curriculum option(s) "
+                          f"{sorted(rest)}")
+    return from_dict(CurriculumConfig, {**cur_opts, "stage_episodes": p["episodes"]},
+                     _where(p))
+
+
+def check_stage(p: dict[str, Any], obs_size_px: int | None) -> None:
+    """Build every config a unit of this payload would (nothing trains, no file is read),
+    so an unknown option or a value of the wrong type or range is one ConfigError naming
+    the stage and the field when the experiment config is read, not when the unit runs.
+
+    Args:
+        p: the payload's stage, mode, algo, episodes, workers, options and seed.
+        obs_size_px: the camera of the stage's task set (fills a [net] that lacks it).
+    """
+    from geonav.configcheck import coerce
+
+    opts = dict(p["options"])
+    stage_augment(opts.pop("augment", None), p.get("stage"))
+    for key in ("tensorboard", "stop_at_convergence"):
+        if key in opts:
+            coerce(bool, opts.pop(key), f"{_where(p)} {key}")
+    for key, tp in ENGINE_TYPES.items():
+        if key in opts:
+            coerce(tp, opts[key], f"{_where(p)} {key}")
+    if opts.get("engine", "batched") not in ("batched", "async"):
+        raise ConfigError(f"{_where(p)} engine = {opts['engine']!r}: use 'batched' or 'async'")
+    _, _, rest = _algo_cfg(dict(p, options=opts), obs_size_px)
+    _engine_opts(rest)
+    if p["mode"] == "meta-train":
+        _meta_cfg(p, rest)
+    elif p["mode"] == "curriculum":
+        _curriculum_cfg(p, rest)
+    elif rest:
+        raise ConfigError(f"stage {p.get('stage')!r}: unknown {p['algo']} option(s) "
+                          f"{sorted(rest)}")
 
 
 def _init_net(p: dict[str, Any], net: Any, resume: str | None) -> Any:
@@ -196,18 +263,11 @@ def _train_algo(p: dict[str, Any], env_factory: Any, callbacks: list[Any],
 @trainer("meta-train", "a3c", "savn", "isar")
 def _meta_train(p: dict[str, Any], env_factory: Any, callbacks: list[Any],
                 resume: str | None) -> tuple[Any, int, str]:
-    from geonav.policy.config import from_dict
     from geonav.policy.engine import build_meta_trainer
-    from geonav.policy.meta_config import MetaConfig
 
     cfg, net, rest = _algo_cfg(p)
     eng = _engine_opts(rest)
-    meta_opts = {k: rest.pop(k) for k in list(rest) if k in MetaConfig.__dataclass_fields__}
-    if rest:
-        raise ConfigError(f"stage {p.get('stage')!r}: unknown meta-train option(s) "
-                          f"{sorted(rest)}")
-    meta = from_dict(MetaConfig, {**meta_opts, "episodes": p["episodes"],
-                                  "workers": p["workers"], "seed": p["seed"]})
+    meta = _meta_cfg(p, rest)
     t = build_meta_trainer(p["algo"], eng["engine"], env_factory, _init_net(p, net, resume),
                            cfg, meta, device=eng["device"], out_dir=p["out_dir"],
                            resume=resume, callbacks=callbacks, tensorboard=False)
@@ -223,21 +283,11 @@ def _curriculum(p: dict[str, Any], env_factory: Any, callbacks: list[Any],
     """The stages resume themselves from ``out_dir`` (curriculum.json and each stage's
     checkpoints/latest.pt); ``episodes`` is the budget of each stage."""
     from geonav.convergence import ConvergenceCriterion
-    from geonav.policy.config import from_dict
     from geonav.policy.curriculum import run_curriculum
-    from geonav.policy.meta_config import CurriculumConfig
 
     cfg, net, rest = _algo_cfg(p)
     eng = _engine_opts(rest)
-    cur_opts = {k: rest.pop(k) for k in list(rest)
-                if k in CurriculumConfig.__dataclass_fields__}
-    if rest:
-        raise ConfigError(f"stage {p.get('stage')!r}: unknown curriculum option(s) "
-                          f"{sorted(rest)}")
-    for key in ("levels_m", "teacher_levels_m"):
-        if cur_opts.get(key) is not None:
-            cur_opts[key] = tuple(float(x) for x in cur_opts[key])
-    cur = from_dict(CurriculumConfig, {**cur_opts, "stage_episodes": p["episodes"]})
+    cur = _curriculum_cfg(p, rest)
     conv = p.get("convergence") or {}
     criterion = ConvergenceCriterion(**{k: conv[k] for k in ("window", "threshold", "hold")
                                         if k in conv})

@@ -120,10 +120,10 @@ def resolve_train_configs(args: argparse.Namespace, table: str = "a3c",
         raise ConfigError(f"[{table}.loss] must be a table")
     if "loss" in a3c_d or cls is A3CConfig:
         a3c_d["loss"] = a3c_d.get("loss") or {}
-    a3c = from_dict(cls, a3c_d)
+    a3c = from_dict(cls, a3c_d, f"[{table}]")
     if not isinstance(a3c.loss, LossConfig):
         raise ConfigError(f"invalid [{table}.loss] table")
-    return from_dict(NetConfig, net_d) if net_d else None, a3c
+    return from_dict(NetConfig, net_d, "[net]") if net_d else None, a3c
 
 
 def run_train(args: argparse.Namespace) -> int:

@@ -195,22 +195,27 @@ def _jsonable(v: Any) -> Any:
     return v
 
 
-def from_dict(cls: type, d: dict[str, Any]) -> Any:
-    """Build ``cls`` from a dict as written by :func:`to_dict`; unknown keys are an error."""
+def from_dict(cls: type, d: dict[str, Any], where: str | None = None) -> Any:
+    """Build ``cls`` from a dict as written by :func:`to_dict` or read from TOML: unknown
+    keys and values of the wrong type (``lr = "abc"``) are a ConfigError naming the
+    field, checked against the dataclass's own type hints (:mod:`geonav.configcheck`).
+
+    Args:
+        cls: a config dataclass.
+        d: field name -> value.
+        where: how the user names the table (``[a3c]``, ``[stages.pre]``) for messages;
+            default the class name.
+    """
+    from geonav.configcheck import build
+
     if not isinstance(d, dict):
-        raise ConfigError(f"{cls.__name__} config must be a mapping, got {type(d).__name__}")
-    known = {f.name: f for f in fields(cls)}
+        raise ConfigError(f"{where or cls.__name__} config must be a mapping, got "
+                          f"{type(d).__name__}")
+    known = sorted(f.name for f in fields(cls))
     unknown = sorted(set(d) - set(known))
-    if unknown:
-        raise ConfigError(f"unknown {cls.__name__} option(s) {unknown}; known: {sorted(known)}")
-    kwargs: dict[str, Any] = {}
-    for k, v in d.items():
-        if k == "loss" and isinstance(cls, type) and issubclass(cls, A3CConfig):
-            v = from_dict(LossConfig, v)
-        elif k == "adam_betas":
-            v = tuple(v)
-        kwargs[k] = v
-    return cls(**kwargs)
+    return build(cls, d, where or cls.__name__,
+                 unknown_message=f"unknown {cls.__name__} option(s) {unknown}; known: {known}"
+                 if unknown else None)
 
 
 def field_help(cls: type) -> dict[str, str]:

@@ -128,7 +128,7 @@ def base_cfg_from_args(args: argparse.Namespace, algo: str, toml: dict[str, Any]
                 opts[key] = getattr(args, attr)
     if getattr(args, "first_order", False) and algo != "a3c":
         opts["second_order"] = False
-    return base_config(algo, opts)
+    return base_config(algo, opts, f"[{algo}]")
 
 
 def net_cfg_from_args(args: argparse.Namespace, toml: dict[str, Any], factory: Any) -> Any:
@@ -144,7 +144,7 @@ def net_cfg_from_args(args: argparse.Namespace, toml: dict[str, Any], factory: A
     if not net_d:
         return None
     net_d.setdefault("obs_size_px", int(factory().observation_space["image"].shape[0]))
-    return from_dict(NetConfig, net_d)
+    return from_dict(NetConfig, net_d, "[net]")
 
 
 def _check_tables(toml: dict[str, Any], allowed: set[str], path: Any) -> None:
@@ -284,7 +284,7 @@ def run_meta_train(args: argparse.Namespace) -> int:
                      ("checkpoint_every", args.checkpoint_every)):
         if val is not None:
             meta_d[key] = val
-    meta = from_dict(MetaConfig, meta_d)
+    meta = from_dict(MetaConfig, meta_d, "[meta]")
     base = base_cfg_from_args(argparse.Namespace(**{**vars(args), "episodes": None,
                                                     "workers": None, "seed": None,
                                                     "checkpoint_every": None}),
@@ -312,7 +312,7 @@ def _floats(text: str | None) -> tuple[float, ...] | None:
 
 def run_curriculum_cmd(args: argparse.Namespace) -> int:
     """Handler of ``geonav curriculum``."""
-    from geonav.convergence import ConvergenceCriterion
+    from geonav.convergence import convergence_criterion
     from geonav.policy.config import from_dict
     from geonav.policy.curriculum import run_curriculum
     from geonav.policy.meta_config import CurriculumConfig
@@ -325,16 +325,13 @@ def run_curriculum_cmd(args: argparse.Namespace) -> int:
                      ("teacher_levels_m", _floats(args.teacher_levels))):
         if val is not None:
             cur_d[key] = val
-    for key in ("levels_m", "teacher_levels_m"):
-        if cur_d.get(key) is not None:
-            cur_d[key] = tuple(float(x) for x in cur_d[key])
-    cur = from_dict(CurriculumConfig, cur_d)
+    cur = from_dict(CurriculumConfig, cur_d, "[curriculum]")
     conv = dict(toml.get("convergence", {}))
     for key, val in (("window", args.window), ("threshold", args.threshold),
                      ("hold", args.hold)):
         if val is not None:
             conv[key] = val
-    criterion = ConvergenceCriterion(**conv)
+    criterion = convergence_criterion(conv, "[convergence]")
     factory = EnvFactory(str(args.scene), str(args.tasks), None, args.obs_size, None)
     factory = replace(factory, augment=getattr(args, "augment", None))
     base = base_cfg_from_args(argparse.Namespace(**{**vars(args), "episodes": None}),

@@ -116,8 +116,9 @@ BASE_CONFIGS: dict[str, type[A3CConfig]] = {"a3c": A3CConfig, "savn": SAVNConfig
                                             "isar": ISARConfig}
 
 
-def base_config(algo: str, options: dict[str, Any]) -> A3CConfig:
-    """The config of ``algo`` from a dict of options (a SAVN ``preset`` fills k and G)."""
+def base_config(algo: str, options: dict[str, Any], where: str | None = None) -> A3CConfig:
+    """The config of ``algo`` from a dict of options (a SAVN ``preset`` fills k and G);
+    ``where`` names the table in messages (default the class name)."""
     if algo not in BASE_CONFIGS:
         raise ConfigError(f"algo must be one of {sorted(BASE_CONFIGS)}, not {algo!r}")
     opts = dict(options)
@@ -129,7 +130,7 @@ def base_config(algo: str, options: dict[str, Any]) -> A3CConfig:
                                                    if k != "preset"}}
     if isinstance(opts.get("loss"), LossConfig):
         opts["loss"] = to_dict(opts["loss"])
-    return from_dict(BASE_CONFIGS[algo], opts)
+    return from_dict(BASE_CONFIGS[algo], opts, where)
 
 
 @dataclass(frozen=True)
