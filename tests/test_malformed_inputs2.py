@@ -275,3 +275,115 @@ def test_preview_replaces_only_its_own_picture(tmp_path, capsys, package):
     rc, _, err = _cli(["tiles", "preview", package, "-o", tmp_path / "p.xyz"], capsys)
     _one_line_error(rc, err, "cannot draw a '.xyz' picture")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["p.png", "photo.png"]
+
+
+# -- 4. checkpoints that cannot fly are refused ---------------------------------------------
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory) -> Path:
+    from geonav.policy.a3c import train_a3c
+    from geonav.policy.config import A3CConfig
+    from geonav.policy.testing import tiny_env_factory, tiny_net
+
+    run = tmp_path_factory.mktemp("run") / "r"
+    train_a3c(tiny_env_factory(), tiny_net(), A3CConfig(episodes=2, workers=0), out_dir=run)
+    return run / "checkpoints" / "final.pt"
+
+
+def _altered(checkpoint: Path, tmp_path: Path, edit) -> Path:
+    import torch
+
+    blob = torch.load(checkpoint, weights_only=True)
+    edit(blob)
+    path = tmp_path / "altered.pt"
+    torch.save(blob, path)
+    return path
+
+
+def _nan_weights(blob):
+    for v in blob["model"].values():
+        if v.is_floating_point():
+            v.fill_(float("nan"))
+
+
+@pytest.mark.parametrize("edit,message", [
+    (_nan_weights, "non-finite weights"),
+    (lambda b: b["model"]["actor.weight"].__setitem__((0, 0), float("inf")),
+     "non-finite weights.*'actor.weight'"),
+    (lambda b: b["meta"]["net"].update(hidden_size=b["meta"]["net"]["hidden_size"] * 2),
+     "do not fit its architecture record"),
+    (lambda b: b["meta"].update(obs_size_px=b["meta"]["obs_size_px"] * 2),
+     "obs_size_px=64 in its meta but its network has obs_size_px=32"),
+    (lambda b: b["model"].pop("actor.bias"), r"missing \['actor.bias'\]"),
+])
+def test_a_checkpoint_that_cannot_act_is_refused_on_load(checkpoint, tmp_path, edit, message):
+    from geonav.errors import CheckpointError
+    from geonav.policy.checkpoint import load_checkpoint
+
+    with pytest.raises(CheckpointError, match=message):
+        load_checkpoint(_altered(checkpoint, tmp_path, edit))
+
+
+def test_a_nan_checkpoint_is_neither_flown_nor_evaluated(checkpoint, tmp_path, capsys):
+    from geonav.testing import textured_scene
+
+    bad = _altered(checkpoint, tmp_path, _nan_weights)
+    scene = textured_scene(60.0, 0.5, towers=False)
+    scene.save(tmp_path / "S")
+    rc, _, err = _cli(["fly", bad, "--scene", tmp_path / "S", "--dry-run", "--target", "2,2",
+                       "--alt", "10", "--out", tmp_path / "flight"], capsys)
+    _one_line_error(rc, err, "non-finite weights")
+    assert not (tmp_path / "flight").exists()  # refused before anything flew or was written
+    rc, _, err = _cli(["eval", bad, "--scene", tmp_path / "S", "--tasks", tmp_path / "t.json"],
+                      capsys)
+    _one_line_error(rc, err, "non-finite weights")
+
+
+def test_pickled_code_in_a_checkpoint_is_refused_without_torchs_advice(tmp_path):
+    import torch
+
+    from geonav.errors import CheckpointError
+    from geonav.policy.checkpoint import load_checkpoint
+
+    class Payload:
+        def __reduce__(self):
+            return (print, ("this would run",))
+
+    torch.save({"format": "geonav-policy", "x": Payload()}, tmp_path / "evil.pt")
+    with pytest.raises(CheckpointError, match="holds more than weights") as info:
+        load_checkpoint(tmp_path / "evil.pt")
+    assert "weights_only" not in str(info.value) and "callable 'print'" in str(info.value)
+    assert "safe_globals" not in str(info.value)
+
+
+def test_outputs_that_are_not_finite_are_refused_before_arming(checkpoint, tmp_path):
+    import torch
+
+    from geonav.errors import CheckpointError
+    from geonav.mavlink_bridge.emulator import Emulator, EmulatorConfig
+    from geonav.mavlink_bridge.flight import FlightConfig, run_flight
+    from geonav.mavlink_bridge.vehicle import open_vehicle
+    from geonav.policy.inference import PolicyRunner
+    from geonav.tasks import Lattice
+    from geonav.testing import textured_scene
+
+    def huge(blob):  # finite, but every sum overflows
+        for v in blob["model"].values():
+            if v.is_floating_point():
+                v.fill_(3e38)
+
+    big = _altered(checkpoint, tmp_path, huge)
+    policy = PolicyRunner.from_checkpoint(big)  # finite weights, infinite logits
+    view = np.full((32, 32, 3), 128, np.uint8)
+    with pytest.raises(CheckpointError, match="outputs are not finite"):
+        policy.check_outputs(view, view)
+    assert all(torch.isfinite(p).all() for p in policy.agent.model.parameters())
+    scene = textured_scene(60.0, 0.5, towers=False)
+    policy.meta.update(alt_m=10.0, step_m=5.0)
+    home = scene.frame.to_lonlat(Lattice(scene.bounds_m, 5.0).center((5, 5)), 0.0)
+    with Emulator(EmulatorConfig(home=home, time_scale=6.0, boot_s=1.0, origin_s=0.6,
+                                 local_position_s=1.2)) as emu:
+        result = run_flight(open_vehicle(emu.connect_url, "pymavlink"), scene, policy,
+                            FlightConfig(target_cell=(7, 6), start_cell=(5, 5)), tmp_path / "f")
+        assert result.outcome == "refused" and "outputs are not finite" in result.reason
+        assert not emu.armed and not emu.setpoints

@@ -680,6 +680,13 @@ def _run_flight(
 
         renderer = WarpRenderer(scene, camera)
         target_img = renderer.render(target_pt.x_m, target_pt.y_m, alt_m, cfg.yaw_deg)
+        check = getattr(policy, "check_outputs", None)
+        if check is not None:  # a policy that cannot act is refused before anything arms
+            try:
+                check(renderer.render(start_pt.x_m, start_pt.y_m, alt_m, cfg.yaw_deg),
+                      target_img)
+            except CheckpointError as err:
+                raise PreflightRefused(str(err)) from err
         if frames is None:
             kind, dev = parse_camera(cfg.camera)
             frames = (

@@ -21,6 +21,7 @@ import hashlib
 import json
 import logging
 import os
+import re
 import tempfile
 import zipfile
 from dataclasses import dataclass
@@ -178,6 +179,16 @@ def load_checkpoint(path: str | os.PathLike[str]) -> Checkpoint:
     except (RuntimeError, EOFError, OSError, ValueError, zipfile.BadZipFile,
             __import__("pickle").UnpicklingError) as err:
         lines = [ln.strip() for ln in str(err).splitlines() if ln.strip()] or [""]
+        if "weights only load failed" in lines[0].lower():
+            # torch's message advises weights_only=False: exactly what would run the payload
+            found = re.search(r"GLOBAL ([\w.]+)", str(err))
+            what = f"a reference to the Python callable {found.group(1)!r}, which loading " \
+                "would call" if found else "Python objects besides tensors"
+            raise CheckpointError(
+                f"checkpoint {path} holds more than weights ({what}); geonav never runs code "
+                "from a checkpoint, and this one was not written by geonav or was altered: "
+                "do not load it elsewhere either; use a checkpoint that geonav train wrote") \
+                from None
         why = next((ln for ln in lines if "WeightsUnpickler error" in ln), lines[0])[:200]
         raise CheckpointError(f"checkpoint {path} is corrupt or truncated and cannot be read "
                               f"({type(err).__name__}: {why}); "
@@ -197,8 +208,49 @@ def load_checkpoint(path: str | os.PathLike[str]) -> Checkpoint:
         raise CheckpointError(f"checkpoint {path} has no weights dict")
     ckpt = Checkpoint(path, meta, state, blob.get("optimizer"), blob.get("rng"),
                       blob.get("extra"))
-    ckpt.net_config  # noqa: B018 - validates the architecture record
+    check_weights(ckpt)
     return ckpt
+
+
+def check_weights(ckpt: Checkpoint) -> None:
+    """Refuse weights that cannot act: non-finite values, or a network other than the one
+    its architecture record and metadata describe.
+
+    Raises:
+        CheckpointError: naming the first offending tensor and what to do.
+    """
+    path, cfg = ckpt.path, ckpt.net_config  # net_config validates the architecture record
+    tensors = [(k, v) for k, v in ckpt.model_state.items()] + [
+        (f"{name}.{k}", v) for name, sd in (ckpt.extra or {}).items() if isinstance(sd, dict)
+        for k, v in sd.items() if isinstance(v, torch.Tensor)]
+    bad = [k for k, v in tensors if v.is_floating_point() and not bool(torch.isfinite(v).all())]
+    if bad:
+        raise CheckpointError(
+            f"checkpoint {path} holds non-finite weights (NaN or inf in {len(bad)} of "
+            f"{len(tensors)} tensors, first {bad[0]!r}): its training diverged; use an earlier "
+            "checkpoint of the run (checkpoints/episode_*.pt) or train again")
+    for key, want in (("obs_size_px", cfg.obs_size_px), ("n_actions", cfg.n_actions)):
+        have = ckpt.meta.get(key)
+        if have is not None and have != want:
+            raise CheckpointError(f"checkpoint {path} says {key}={have!r} in its meta but its "
+                                  f"network has {key}={want!r}; the file was altered, use "
+                                  "another checkpoint")
+    try:
+        with torch.device("meta"):  # shapes only, nothing allocated
+            expected = {k: tuple(v.shape) for k, v in ActorCritic(cfg).state_dict().items()}
+    except Exception:  # noqa: BLE001 - the strict load in build_model still checks
+        return
+    have = {k: tuple(v.shape) for k, v in ckpt.model_state.items()}
+    if have != expected:
+        missing = sorted(set(expected) - set(have))
+        extra = sorted(set(have) - set(expected))
+        shape = next((f"{k} is {have[k]}, its architecture needs {expected[k]}"
+                      for k in expected if k in have and have[k] != expected[k]), "")
+        detail = "; ".join(x for x in (
+            f"missing {missing[:3]}" if missing else "", f"unexpected {extra[:3]}" if extra
+            else "", shape) if x)
+        raise CheckpointError(f"checkpoint {path} weights do not fit its architecture record "
+                              f"({detail}); the file was altered, use another checkpoint")
 
 
 def check_compatible(meta: dict[str, Any], env: Any, *, path: Any = "checkpoint",

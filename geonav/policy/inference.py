@@ -105,6 +105,28 @@ class PolicyRunner:
         with torch_threads(self.threads):
             return self._act(image, target, greedy, prev)
 
+    def check_outputs(self, image: np.ndarray, target: np.ndarray) -> None:
+        """Run the network once on a view and a target view (its state untouched) and refuse
+        non-finite action logits or value: such a policy cannot choose an action.
+
+        Raises:
+            CheckpointError: naming the outputs and what to do.
+        """
+        image = self._check("current", image)
+        target = self._check("target", target)
+        model = self.agent.model
+        with torch_threads(self.threads), torch.no_grad():
+            x = view_input(image, self.agent.frozen, target=target)
+            t = view_input(target, self.agent.frozen, target=target)
+            logits, value, _ = model(x.unsqueeze(0).unsqueeze(0), t.unsqueeze(0),
+                                     model.initial_state())
+        if not (bool(torch.isfinite(logits).all()) and bool(torch.isfinite(value).all())):
+            raise CheckpointError(
+                f"the policy's outputs are not finite on this scene's views (action logits "
+                f"{[round(float(v), 3) for v in logits.flatten()[:4]]}, value "
+                f"{float(value.flatten()[0]):.3g}): it cannot choose an action; use another "
+                "checkpoint of the run")
+
     def _act(self, image: np.ndarray, target: np.ndarray, greedy: bool | None,
              prev_image: np.ndarray | None = None) -> int:
         if self._target is None or self._target_image is None or \
