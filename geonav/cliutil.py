@@ -101,30 +101,62 @@ class LineProgress:
         print(text, file=sys.stderr, flush=True)
 
 
+def _budget(info: dict[str, Any]) -> tuple[str, int, int]:
+    """What a training progress display counts: ("step", total, start) when the run has a
+    step budget (it is the budget; the episode budget may be lifted), else ("ep", ...)."""
+    if info.get("total_steps"):
+        return "step", int(info["total_steps"]), int(info.get("start_env_steps") or 0)
+    return "ep", int(info["episodes"]), int(info["start_episode"])
+
+
+def _episode_budget(info: dict[str, Any]) -> str:
+    """'/1000' when the run has an episode budget, '' when only steps bound it."""
+    from geonav.policy.config import NO_EPISODE_LIMIT
+
+    return "" if int(info["episodes"]) >= NO_EPISODE_LIMIT else f"/{info['episodes']}"
+
+
 class TqdmProgress:
     """Turns trainer callbacks into a tqdm bar on a terminal (success-rate moving average in
-    the postfix), or into one progress line every 30 s when stderr is not a terminal."""
+    the postfix), or into one progress line every 30 s when stderr is not a terminal. The
+    bar and the lines count env steps when the run has a step budget, else episodes.
+
+    ``disable`` (``--no-progress``) silences the progress only: the run's start line (its
+    budget and folder) and the periodic evaluations are still written, one line each."""
 
     def __init__(self, disable: bool) -> None:
         from tqdm import tqdm  # type: ignore[import-untyped]
 
         from geonav.policy.callbacks import Callback
 
-        if not disable and not is_terminal():
+        if disable:
+            self.callback = _line_callback(Callback, per_episode=False)
+            return
+        if not is_terminal():
             self.callback = _line_callback(Callback)
             return
 
         class _CB(Callback):
             def on_train_start(cb, info: dict[str, Any]) -> None:
-                cb.bar = tqdm(total=info["episodes"], initial=info["start_episode"],
-                              unit="ep", disable=disable, dynamic_ncols=True)
+                cb.unit, total, start = _budget(info)
+                cb.bar = tqdm(total=total, initial=start, unit=cb.unit, dynamic_ncols=True,
+                              disable=None)
                 cb.recent: list[float] = []
+                cb.of = _episode_budget(info)
 
             def on_episode(cb, record: dict[str, Any]) -> None:
                 cb.recent = (cb.recent + [float(record["success"])])[-100:]
-                cb.bar.update(1)
-                cb.bar.set_postfix(sr=f"{sum(cb.recent) / len(cb.recent):.2f}",
-                                   len=record["length"])
+                if cb.unit == "step":
+                    cb.bar.update(max(0, int(record.get("env_steps") or 0) - cb.bar.n))
+                    cb.bar.set_postfix(ep=f"{record['episode']}{cb.of}",
+                                       sr=f"{sum(cb.recent) / len(cb.recent):.2f}")
+                else:
+                    cb.bar.update(1)
+                    cb.bar.set_postfix(sr=f"{sum(cb.recent) / len(cb.recent):.2f}",
+                                       len=record["length"])
+
+            def on_eval(cb, row: dict[str, Any]) -> None:
+                tqdm.write(_eval_line(row), file=sys.stderr)
 
             def on_train_end(cb, result: Any) -> None:
                 if hasattr(cb, "bar"):
@@ -133,32 +165,43 @@ class TqdmProgress:
         self.callback = _CB()
 
 
-def _line_callback(base: type) -> Any:
+def _eval_line(row: dict[str, Any]) -> str:
+    abl = f" (view-ablated {row['ablated_sr']:.2f})" \
+        if row.get("ablated_sr") is not None else ""
+    return (f"evaluation at episode {row['episode']}: greedy SR {row['greedy_sr']:.2f}{abl}, "
+            f"sampled SR {row['sampled_sr']:.2f} from {row['starts']} starts")
+
+
+def _line_callback(base: type, per_episode: bool = True) -> Any:
+    """Lines for logs: the start (budget, run folder), every evaluation, and with
+    ``per_episode`` a progress line every ~30 s."""
     import time
 
     class _Lines(base):  # type: ignore[misc, valid-type]
         def on_train_start(cb, info: dict[str, Any]) -> None:
             cb.lines = LineProgress()
-            cb.total = info["episodes"]
+            cb.unit, cb.total, start = _budget(info)
+            cb.of = _episode_budget(info)
             cb.recent: list[float] = []
             cb.t0 = time.monotonic()
-            LineProgress.write(f"training: episode {info['start_episode']}/{cb.total}")
+            where = f" into {info['out_dir']}" if info.get("out_dir") else ""
+            budget = (f"env step {start}/{cb.total} (episode {info['start_episode']}{cb.of})"
+                      if cb.unit == "step" else f"episode {start}/{cb.total}")
+            LineProgress.write(f"training{where}: {budget}")
 
         def on_episode(cb, record: dict[str, Any]) -> None:
             cb.recent = (cb.recent + [float(record["success"])])[-100:]
-            if cb.lines.due():
+            if per_episode and cb.lines.due():
+                steps = record.get("env_steps", "?")
+                at = (f"env step {steps}/{cb.total}, episode {record['episode']}{cb.of}"
+                      if cb.unit == "step" else
+                      f"episode {record['episode']}/{cb.total}, {steps} env steps")
                 LineProgress.write(
-                    f"training: episode {record['episode']}/{cb.total}, "
-                    f"{record.get('env_steps', '?')} env steps, training SR (last "
-                    f"{len(cb.recent)}) {sum(cb.recent) / len(cb.recent):.2f}, "
-                    f"{time.monotonic() - cb.t0:.0f} s")
+                    f"training: {at}, training SR (last {len(cb.recent)}) "
+                    f"{sum(cb.recent) / len(cb.recent):.2f}, {time.monotonic() - cb.t0:.0f} s")
 
         def on_eval(cb, row: dict[str, Any]) -> None:
-            abl = f" (view-ablated {row['ablated_sr']:.2f})" \
-                if row.get("ablated_sr") is not None else ""
-            LineProgress.write(f"evaluation at episode {row['episode']}: greedy SR "
-                               f"{row['greedy_sr']:.2f}{abl}, sampled SR "
-                               f"{row['sampled_sr']:.2f} from {row['starts']} starts")
+            LineProgress.write(_eval_line(row))
 
     return _Lines()
 

@@ -173,6 +173,59 @@ def test_progress_is_lines_when_not_a_terminal(scene_files, tmp_path, capsys, mo
     assert "evaluation at episode 3: greedy SR" in err
 
 
+def test_a_step_budget_is_the_budget_and_progress_counts_steps(scene_files, tmp_path, capsys,
+                                                               monkeypatch):
+    """Issue 34: --total-steps without --episodes is not capped by the default 1000
+    episodes, and progress counts env steps against it ('episode 83/1000' before)."""
+    import csv
+
+    from geonav.policy.config import NO_EPISODE_LIMIT
+
+    monkeypatch.setenv("GEONAV_PROGRESS_S", "0")
+    scene, tasks = scene_files
+    run = tmp_path / "run"
+    # at most 5 steps an episode: 6,000 steps need 1,200+ episodes
+    args = _parse(["train", "--algo", "a3c", "--scene", str(scene), "--tasks", str(tasks),
+                   "--altitude", "75", "--workers", "0", "--out", str(run), "--obs-size", "32",
+                   "--encoder", "random", "--max-steps", "5", "--total-steps", "6000"])
+    assert args.handler(args) == 0
+    rows = list(csv.DictReader(open(run / "metrics.csv")))
+    assert len(rows) > 1000 and int(rows[-1]["env_steps"]) >= 6000
+    assert json.loads((run / "config.json").read_text())["a3c"]["episodes"] == NO_EPISODE_LIMIT
+    err = capsys.readouterr().err
+    assert f"training into {run}: env step 0/6000 (episode 0)" in err
+    assert "training: env step " in err and "/6000, episode " in err and "/1000" not in err
+    # an episode budget given beside it is kept, and shown beside the steps
+    args = _parse(["train", "--scene", str(scene), "--tasks", str(tasks), "--out", "o",
+                   "--episodes", "7", "--total-steps", "6000"])
+    assert cli.resolve_train_configs(args)[1].episodes == 7
+    toml = tmp_path / "c.toml"
+    toml.write_text("[a3c]\nepisodes = 9\ntotal_steps = 50\n")
+    args = _parse(["train", "--scene", str(scene), "--tasks", str(tasks), "--out", "o",
+                   "--config", str(toml)])
+    assert cli.resolve_train_configs(args)[1].episodes == 9
+    toml.write_text("[a3c]\ntotal_steps = 50\n")
+    assert cli.resolve_train_configs(args)[1].episodes == NO_EPISODE_LIMIT
+
+
+def test_no_progress_silences_progress_only(scene_files, tmp_path, capsys, monkeypatch):
+    """--no-progress: no bar and no periodic lines, but the start line (where the run goes),
+    the evaluations and the closing result line (with the checkpoint) are still there."""
+    monkeypatch.setenv("GEONAV_PROGRESS_S", "0")
+    scene, tasks = scene_files
+    run = tmp_path / "run"
+    args = _parse(["train", "--algo", "isar", "--scene", str(scene), "--tasks", str(tasks),
+                   "--altitude", "75", "--workers", "0", "--out", str(run), "--obs-size", "32",
+                   "--encoder", "random", "--episodes", "4", "--no-progress"])
+    assert args.handler(args) == 0
+    out, err = capsys.readouterr()
+    assert err.splitlines()[0] == f"training into {run}: episode 0/4"
+    assert "training: episode" not in err  # no periodic progress
+    assert "evaluation at episode 4: greedy SR" in err
+    assert out.startswith("trained 4 episodes") and \
+        f"checkpoint {run / 'checkpoints' / 'final.pt'}" in out
+
+
 def test_eval_all_starts_script_evaluates_every_start_once(scene_files, tmp_path, capsys):
     """scripts/eval_all_starts.py: each finished unit's final policy from every start of its
     task set (the runner's evaluations sample ``eval_starts``); kept per unit, not redone."""

@@ -567,7 +567,9 @@ class A3CTrainer:
         self._eval_every = self.eval_interval()
         for cb in cbs:
             cb.on_train_start({"episodes": self.cfg.episodes, "start_episode": self.start_episode,
-                               "workers": self.cfg.workers, "out_dir": self.out_dir})
+                               "workers": self.cfg.workers, "out_dir": self.out_dir,
+                               "total_steps": self.cfg.total_steps,
+                               "start_env_steps": self.total_env_steps(result)})
         return cbs, result
 
     def finish_training(self, cbs: list[Callback], result: TrainResult) -> None:

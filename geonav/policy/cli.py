@@ -95,7 +95,13 @@ def resolve_train_configs(args: argparse.Namespace, table: str = "a3c",
                           cls: Any = None) -> tuple[Any, Any]:
     """(NetConfig, A3CConfig) from defaults, the TOML file and the command line (``table``
     and ``cls``: another A3CConfig subclass, e.g. ``[ppo]`` and PPOConfig)."""
-    from geonav.policy.config import A3CConfig, LossConfig, NetConfig, from_dict
+    from geonav.policy.config import (
+        A3CConfig,
+        LossConfig,
+        NetConfig,
+        from_dict,
+        step_budget_first,
+    )
 
     cls = cls or A3CConfig
     toml = load_toml(getattr(args, "config", None))
@@ -120,7 +126,7 @@ def resolve_train_configs(args: argparse.Namespace, table: str = "a3c",
         raise ConfigError(f"[{table}.loss] must be a table")
     if "loss" in a3c_d or cls is A3CConfig:
         a3c_d["loss"] = a3c_d.get("loss") or {}
-    a3c = from_dict(cls, a3c_d, f"[{table}]")
+    a3c = from_dict(cls, step_budget_first(a3c_d), f"[{table}]")
     if not isinstance(a3c.loss, LossConfig):
         raise ConfigError(f"invalid [{table}.loss] table")
     return from_dict(NetConfig, net_d, "[net]") if net_d else None, a3c

@@ -13,6 +13,10 @@ from typing import Any
 from geonav.errors import ConfigError
 
 ENCODERS = ("cnn", "random", "resnet18", "corr")
+NO_EPISODE_LIMIT = 1_000_000_000
+"""The episode budget of a run given a step budget and no episode budget (``--total-steps``
+without ``--episodes``, or ``total_steps`` without ``episodes`` in a TOML table): the
+steps are the budget (:func:`step_budget_first`)."""
 INITS = ("orthogonal", "savn")
 INPUT_NORMS = ("center", "none")
 
@@ -117,7 +121,9 @@ class A3CConfig:
     """A3C training (ALGORITHMS.md (a))."""
 
     episodes: int = 1000
-    """Training episodes in total, counted over all workers (including resumed ones)."""
+    """Training episodes in total, counted over all workers (including resumed ones). With
+    a step budget and no episode budget given, the steps are the budget (the command line
+    and TOML tables lift this default)."""
     total_steps: int = 0
     """Env-step budget in total (including resumed steps; 0: none). Training ends at
     whichever budget, episodes or steps, runs out first (at an episode end)."""
@@ -179,6 +185,17 @@ class A3CConfig:
             raise ConfigError(f"eval_max_starts must be >= 1, got {self.eval_max_starts}")
         if self.checkpoint_every < 0:
             raise ConfigError(f"checkpoint_every must be >= 0, got {self.checkpoint_every}")
+
+
+def step_budget_first(values: dict[str, Any], total_steps: Any = None) -> dict[str, Any]:
+    """``values`` (a config table being resolved) with ``episodes`` set to
+    :data:`NO_EPISODE_LIMIT` when a step budget is asked (``total_steps`` in it, or the
+    given ``total_steps``) and no episode budget was: a step budget, when given, is the
+    budget, not capped by the default 1000 episodes."""
+    steps = values.get("total_steps") if total_steps is None else total_steps
+    if steps and "episodes" not in values:
+        return {**values, "episodes": NO_EPISODE_LIMIT}
+    return values
 
 
 def to_dict(cfg: Any) -> dict[str, Any]:

@@ -21,6 +21,7 @@ from geonav.cliutil import (
     positive_int,
 )
 from geonav.errors import ConfigError
+from geonav.policy.config import step_budget_first
 from geonav.policy.envs import EnvFactory
 
 ALGOS = ("a3c", "savn", "isar")
@@ -128,7 +129,7 @@ def base_cfg_from_args(args: argparse.Namespace, algo: str, toml: dict[str, Any]
                 opts[key] = getattr(args, attr)
     if getattr(args, "first_order", False) and algo != "a3c":
         opts["second_order"] = False
-    return base_config(algo, opts, f"[{algo}]")
+    return base_config(algo, step_budget_first(opts), f"[{algo}]")
 
 
 def net_cfg_from_args(args: argparse.Namespace, toml: dict[str, Any], factory: Any) -> Any:
@@ -284,11 +285,11 @@ def run_meta_train(args: argparse.Namespace) -> int:
                      ("checkpoint_every", args.checkpoint_every)):
         if val is not None:
             meta_d[key] = val
-    meta = from_dict(MetaConfig, meta_d, "[meta]")
     base = base_cfg_from_args(argparse.Namespace(**{**vars(args), "episodes": None,
                                                     "workers": None, "seed": None,
                                                     "checkpoint_every": None}),
                               args.algo, toml)
+    meta = from_dict(MetaConfig, step_budget_first(meta_d, base.total_steps), "[meta]")
     net = net_cfg_from_args(args, toml, factory)
     if net is not None and args.obs_size is None:
         factory = replace(factory, obs_size_px=net.obs_size_px)
