@@ -8,6 +8,29 @@ by its string entry point (the env module loads on the first ``gymnasium.make``)
 
 __version__ = "0.1.0"
 
+
+def _quiet_interrupt_in_the_command() -> None:
+    """In the ``geonav`` command only: Ctrl-C while the package is still importing (before
+    :func:`geonav.cli.main` can catch it) prints one line instead of a traceback; Python
+    still exits as killed by SIGINT."""
+    import os
+    import sys
+
+    if not sys.argv or os.path.basename(sys.argv[0]) != "geonav":
+        return
+    previous = sys.excepthook
+
+    def hook(kind, value, tb):  # type: ignore[no-untyped-def]
+        if issubclass(kind, KeyboardInterrupt):
+            print("geonav: interrupted", file=sys.stderr)
+        else:
+            previous(kind, value, tb)
+
+    sys.excepthook = hook
+
+
+_quiet_interrupt_in_the_command()
+
 ENV_ID = "geonav/GeoNav-v0"
 
 

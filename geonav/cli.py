@@ -50,26 +50,94 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    level = logging.WARNING - 10 * min(args.verbose, 2)
-    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
-    one_line_warnings()
-    handler = getattr(args, "handler", None)
-    if handler is None:
-        parser.print_help()
-        return 0
+    """Run the ``geonav`` command; returns the exit status.
+
+    Every expected failure ends in one line on stderr and exit status 2 (130 for Ctrl-C,
+    at any moment, start-up included); ``-v`` adds the traceback above that line.
+    """
+    args: argparse.Namespace | None = None
     try:
+        parser = build_parser()
+        args = parser.parse_args(argv)
+        level = logging.WARNING - 10 * min(args.verbose, 2)
+        logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+        one_line_warnings()
+        handler = getattr(args, "handler", None)
+        if handler is None:
+            parser.print_help()
+            return 0
         return int(handler(args) or 0)
-    except GeonavError as err:
-        print(f"geonav: error: {' '.join(str(err).split())}", file=sys.stderr)
-        return 2
-    except OSError as err:  # an unwritable --out, a full disk: the path and the reason
-        print(f"geonav: error: {oserror_line(err)}", file=sys.stderr)
-        return 2
     except KeyboardInterrupt:
         print("geonav: interrupted", file=sys.stderr)
         return 130
+    except Exception as err:  # noqa: BLE001 - the expected classes become one line
+        line = error_line(err, args)
+        if line is None:
+            raise  # not an expected failure: a bug, whose traceback says where
+        if _verbose(args, argv):
+            import traceback
+
+            traceback.print_exc()
+        print(f"geonav: error: {' '.join(line.split())}", file=sys.stderr)
+        return 2
+
+
+def _verbose(args: argparse.Namespace | None, argv: Sequence[str] | None) -> bool:
+    if args is not None:
+        return bool(getattr(args, "verbose", 0))
+    words = sys.argv[1:] if argv is None else list(argv)
+    return any(w in ("-v", "-vv", "--verbose") for w in words)
+
+
+def error_line(err: BaseException, args: argparse.Namespace | None = None) -> str | None:
+    """The one line (without the ``geonav: error:`` prefix) for an expected failure, naming
+    the input and the fix; None for anything else (a bug)."""
+    if isinstance(err, GeonavError):
+        return str(err)
+    if isinstance(err, UnicodeDecodeError):
+        where = _undecodable_input(args)
+        return (f"{where or 'an input file'} is not UTF-8 text ({err.reason} at byte "
+                f"{err.start}); save it as UTF-8" + ("" if where else
+                                                     " (the TOML or JSON file given)"))
+    if isinstance(err, OSError):  # an unwritable --out, a full disk: the path and the reason
+        return oserror_line(err)
+    if type(err).__module__.startswith("rasterio"):  # RasterioError, CPLE_* (GDAL)
+        return (f"GDAL could not read or write a raster ({type(err).__name__}: "
+                f"{' '.join(str(err).split())[:300]}); check the file it names is a raster "
+                "GDAL can open and that its disk has room")
+    if isinstance(err, MemoryError):
+        return ("out of memory: the input asks for more than this machine has; ask for less "
+                "(a smaller --bbox or coarser --gsd, a larger lattice --step, fewer workers or "
+                "a smaller batch)")
+    if isinstance(err, OverflowError):
+        return (f"a number is out of range ({err}); check the numbers on the command line "
+                "and in the input files")
+    return None
+
+
+def _undecodable_input(args: argparse.Namespace | None) -> str | None:
+    """The first file named in ``args`` that is not UTF-8 text (to name it in the error)."""
+    import os
+
+    if args is None:
+        return None
+    for value in vars(args).values():
+        for item in value if isinstance(value, list | tuple) else [value]:
+            if not isinstance(item, str | os.PathLike) or not os.path.isfile(item):
+                continue
+            try:
+                if os.path.getsize(item) > 64 << 20:
+                    continue
+                with open(item, "rb") as f:
+                    head = f.read(4)
+                    if head.startswith((b"II*\x00", b"MM\x00*", b"\x89PNG", b"PK")):
+                        continue  # a raster or a checkpoint: binary on purpose
+                    (head + f.read()).decode("utf-8")
+            except UnicodeDecodeError:
+                return str(item)
+            except OSError:
+                continue
+    return None
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -387,3 +387,101 @@ def test_outputs_that_are_not_finite_are_refused_before_arming(checkpoint, tmp_p
                             FlightConfig(target_cell=(7, 6), start_cell=(5, 5)), tmp_path / "f")
         assert result.outcome == "refused" and "outputs are not finite" in result.reason
         assert not emu.armed and not emu.setpoints
+
+
+# -- 2. one line for every expected failure ------------------------------------------------
+
+def _entry_points() -> list[tuple[str, ...]]:
+    """Every subcommand path of ``geonav`` that has a handler."""
+    import argparse
+
+    from geonav.cli import build_parser
+
+    found = []
+
+    def walk(parser, path):
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for name, sub in action.choices.items():
+                    walk(sub, (*path, name))
+        if path and parser.get_default("handler") is not None:
+            found.append(path)
+
+    walk(build_parser(), ())
+    return found
+
+
+def _gdal_error():
+    from rasterio._err import CPLE_FileIOError
+
+    return CPLE_FileIOError(3, 3, "out/.S.geonav-tmp/ortho.tif: No space left on device")
+
+
+FAILURES = {
+    "gdal": (_gdal_error, "GDAL could not read or write a raster"),
+    "memory": (MemoryError, "out of memory"),
+    "overflow": (lambda: OverflowError("Python int too large to convert to C long"),
+                 "a number is out of range"),
+    "unicode": (lambda: b"\xff".decode("utf-8"), "is not UTF-8 text"),
+    "disk full": (lambda: OSError(28, "No space left on device", "out/x"),
+                  "cannot write out/x: No space left on device"),
+}
+
+
+@pytest.mark.parametrize("kind", sorted(FAILURES))
+def test_every_entry_point_turns_each_failure_class_into_one_line(monkeypatch, capsys, kind):
+    import argparse
+
+    from geonav.cli import GeonavParser
+
+    make, needle = FAILURES[kind]
+    entries = _entry_points()
+    assert {("tiles", "ingest"), ("tasks", "make"), ("train",), ("eval",), ("fly",)} <= \
+        set(entries)
+
+    def fail(args):
+        raise make()  # (the unicode case raises inside make())
+
+    for path in entries:
+        monkeypatch.setattr(GeonavParser, "parse_args", lambda self, argv=None, ns=None:
+                            argparse.Namespace(verbose=0, handler=fail))
+        rc, _, err = _cli(list(path), capsys)
+        _one_line_error(rc, err, needle)
+    monkeypatch.setattr(GeonavParser, "parse_args", lambda self, argv=None, ns=None:
+                        argparse.Namespace(verbose=1, handler=fail))
+    rc, _, err = _cli(["train"], capsys)  # -v: the traceback, then the same one line
+    assert rc == 2 and "Traceback" in err and needle in err.strip().splitlines()[-1]
+
+
+def test_ctrl_c_at_any_moment_is_one_line(monkeypatch, capsys, tmp_path):
+    import os
+
+    import geonav.cli
+
+    def interrupted(*a, **kw):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(geonav.cli, "build_parser", interrupted)  # during start-up
+    assert _cli(["tiles", "info", "x"], capsys)[1:] == ("", "geonav: interrupted\n")
+    # ... and while the package itself is still importing, before main() exists
+    fake = tmp_path / "gymnasium"
+    fake.mkdir()
+    (fake / "__init__.py").write_text("raise KeyboardInterrupt\n")
+    env = {**os.environ, "PYTHONPATH": str(tmp_path)}
+    proc = subprocess.run([str(Path(sys.executable).parent / "geonav"), "--help"], env=env,
+                          capture_output=True, text=True, timeout=60)
+    assert proc.stderr == "geonav: interrupted\n" and proc.returncode in (-2, 130)
+
+
+def test_a_toml_file_that_is_not_utf8_is_named(tmp_path, capsys, package):
+    bad = tmp_path / "train.toml"
+    bad.write_bytes(b"[a3c]\nlr = 0.001 # caf\xe9 latin-1\n")
+    rc, _, err = _cli(["train", "--scene", package, "--tasks", tmp_path / "t.json", "--out",
+                       tmp_path / "run", "--config", bad], capsys)
+    _one_line_error(rc, err, f"{bad} is not UTF-8 text")
+    assert "save it as UTF-8" in err
+    assert not (tmp_path / "run").exists()
+    exp = tmp_path / "exp.toml"
+    exp.write_bytes(b'name = "caf\xe9"\n')
+    rc, _, err = _cli(["experiment", "run", exp], capsys)
+    _one_line_error(rc, err, f"{exp} is not UTF-8 text")
