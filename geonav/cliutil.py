@@ -274,6 +274,19 @@ def nonneg_int(text: str) -> int:
     return value
 
 
+#: Largest seed geonav accepts: a 32-bit unsigned integer, which every RNG it seeds takes
+#: (torch refuses 2**64, and seeds are offset per worker and per episode).
+MAX_SEED = 2**32 - 1
+
+
+def seed_int(text: str) -> int:
+    """argparse type: a seed, an integer within 0..2**32-1."""
+    value = _number(text, "an integer", int)
+    if not 0 <= value <= MAX_SEED:
+        raise argparse.ArgumentTypeError(f"{text!r} must be a seed within 0..{MAX_SEED}")
+    return value
+
+
 def float_list(text: str, *, positive: bool = True) -> tuple[float, ...]:
     """'300,75,45' -> (300.0, 75.0, 45.0); at least one value, each finite (and > 0)."""
     parts = [p.strip() for p in text.split(",")]

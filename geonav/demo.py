@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from geonav.cliutil import nonneg_int, positive_float, positive_int
+from geonav.cliutil import positive_float, positive_int, seed_int
 
 log = logging.getLogger(__name__)
 
@@ -29,7 +29,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--size", type=positive_float, default=1200.0, help="scene side in metres")
     p.add_argument("--gsd", type=positive_float, default=0.25, help="scene GSD in m/px")
     p.add_argument("--meta-tasks", type=positive_int, default=15, help="meta-tasks on scene A")
-    p.add_argument("--seed", type=nonneg_int, default=0)
+    p.add_argument("--seed", type=seed_int, default=0)
     p.add_argument("--force", action="store_true", help="re-create existing scenes")
     p.set_defaults(handler=run)
 

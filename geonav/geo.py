@@ -45,6 +45,15 @@ class LonLat:
             )
         if abs(self.lat_deg) > 84.0:
             raise GeoError(f"latitude {self.lat_deg} is too close to a pole for a scene")
+        if not ALT_RANGE_M[0] <= self.alt_m <= ALT_RANGE_M[1]:
+            raise GeoError(f"altitude {self.alt_m} m is outside {ALT_RANGE_M[0]:g}.."
+                           f"{ALT_RANGE_M[1]:g} m; give metres above mean sea level")
+
+
+#: Altitudes (m AMSL) a position may have: the deepest ocean floor to the edge of space.
+ALT_RANGE_M = (-11_000.0, 100_000.0)
+#: Ground heights (m AMSL) a scene origin may have: the Dead Sea shore to above Everest.
+GROUND_ALT_RANGE_M = (-500.0, 9_000.0)
 
 
 @dataclass(frozen=True)

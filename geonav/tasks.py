@@ -22,6 +22,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import numbers
 import os
 import tempfile
 from collections import deque
@@ -44,6 +45,12 @@ Region = tuple[float, float, float, float]
 ACTION_MOVES: tuple[Cell, ...] = ((0, 1), (1, 0), (-1, 0), (0, -1))
 ACTION_MEANINGS: tuple[str, ...] = ("forward", "right", "left", "backward")
 TASKSET_SCHEMA = 1
+#: Most cells one task's lattice may have (1000 x 1000): every cell gets a rendered view
+#: per altitude (21 KiB at 84 px), an obstacle test and BFS distances.
+MAX_LATTICE_CELLS = 1_000_000
+#: Highest flight altitude (m) a task may ask for: far above any drone's ceiling, low enough
+#: that a view still sees the scene.
+MAX_ALT_M = 10_000.0
 #: Least fraction of valid imagery in a target's or start's view (item 5 of issue 13).
 DEFAULT_MIN_COVERAGE = 0.99
 
@@ -56,11 +63,25 @@ class Lattice:
     step_m: float
 
     def __post_init__(self) -> None:
+        if len(self.region_m) != 4 or not all(
+                isinstance(v, numbers.Real) and math.isfinite(v) for v in self.region_m):
+            raise TaskError(f"region {self.region_m} must be 4 finite numbers "
+                            "(xmin, ymin, xmax, ymax) in scene metres")
         xmin, ymin, xmax, ymax = self.region_m
-        if self.step_m <= 0:
-            raise TaskError(f"lattice step must be positive, got {self.step_m} m")
+        if not (self.step_m > 0 and math.isfinite(self.step_m)):
+            raise TaskError(f"lattice step must be a positive number of metres, got "
+                            f"{self.step_m}")
         if xmax - xmin < self.step_m or ymax - ymin < self.step_m:
             raise TaskError(f"region {self.region_m} is smaller than one {self.step_m} m step")
+        # Before anything sized by the lattice is allocated (obstacle maps, BFS, views).
+        n = (xmax - xmin) / self.step_m * ((ymax - ymin) / self.step_m)
+        if n > MAX_LATTICE_CELLS:
+            need = self.step_m * math.sqrt(n / MAX_LATTICE_CELLS)
+            raise TaskError(
+                f"a {self.step_m:g} m lattice over {xmax - xmin:.0f} x {ymax - ymin:.0f} m has "
+                f"{n:,.0f} cells, more than the {MAX_LATTICE_CELLS:,} one task may have (its "
+                f"views alone would take {n * 84 * 84 * 3 / (1 << 30):,.0f} GiB at 84 px); use "
+                f"a step of at least {need:.3g} m")
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -138,6 +159,15 @@ class NavTask:
     max_steps: int = 70
     obstacles: ObstacleModel = field(default_factory=ObstacleModel)
     min_coverage: float = DEFAULT_MIN_COVERAGE
+
+    def __post_init__(self) -> None:
+        self.lattice  # noqa: B018 - checks the region and step, and bounds the cells
+        if not (0 < self.alt_m <= MAX_ALT_M and math.isfinite(self.alt_m)):
+            raise TaskError(f"task {self.name!r}: altitude {self.alt_m} m must be within "
+                            f"0..{MAX_ALT_M:g} m")
+        if not 1 <= self.max_steps <= 1_000_000:
+            raise TaskError(f"task {self.name!r}: max_steps {self.max_steps} must be within "
+                            "1..1000000")
 
     @property
     def lattice(self) -> Lattice:
@@ -404,10 +434,15 @@ class TaskSet:
             raise TaskError(f"task file {path} has schema_version "
                             f"{d.get('schema_version') if isinstance(d, dict) else None}, "
                             f"expected {TASKSET_SCHEMA}")
+        if not isinstance(d.get("meta", {}), dict):
+            raise TaskError(f"task file {path}: 'meta' must be an object, got "
+                            f"{type(d['meta']).__name__}; re-create it with 'geonav tasks make'")
         try:
             tasks = [NavTask.from_dict(t) for t in d["tasks"]]
             camera = Camera(**d.get("camera", {}))
             ts = cls(str(d["scene_name"]), str(d["scene_id"]), tasks, camera, d.get("meta", {}))
+        except TaskError as err:  # a task's numbers out of bounds: name the file too
+            raise TaskError(f"task file {path}: {err}") from err
         except KeyError as err:
             raise TaskError(f"task file {path} is malformed: missing {err}") from err
         except (TypeError, ValueError, AttributeError) as err:

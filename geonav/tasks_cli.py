@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from geonav.cliutil import nonneg_int, positive_float, positive_floats, positive_int
+from geonav.cliutil import positive_float, positive_floats, positive_int, seed_int
 
 
 def _fraction(text: str) -> float:
@@ -58,7 +58,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-random-walk", type=_limit, default=None, metavar="SR",
                    help="keep only targets a uniform random walk reaches at most SR of the "
                    "time (default none)")
-    p.add_argument("--seed", type=nonneg_int, default=0)
+    p.add_argument("--seed", type=seed_int, default=0)
     p.add_argument("-o", "--out", required=True, help="task set JSON to write")
     p.add_argument("--force", action="store_true",
                    help="replace an existing task file (only one geonav wrote)")

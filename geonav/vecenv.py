@@ -42,6 +42,7 @@ environment on the bare env and sees clean imagery.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from typing import Any
 
@@ -77,6 +78,24 @@ class StepResult:
     @property
     def done(self) -> np.ndarray:
         return self.terminated | self.truncated
+
+
+def physical_memory_bytes() -> int | None:
+    """This machine's physical memory in bytes (None where the OS does not say)."""
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def check_table_memory(need_bytes: int, what: str) -> None:
+    """TaskError before a view table larger than most of this machine's memory is allocated."""
+    total = physical_memory_bytes()
+    if total is not None and need_bytes > 0.8 * total:
+        raise TaskError(f"the views of {what} need {need_bytes / (1 << 30):.1f} GiB, more than "
+                        f"this machine's {total / (1 << 30):.1f} GiB allow; use a larger "
+                        "lattice step (geonav tasks make --step), fewer tasks or a smaller "
+                        "--obs-size")
 
 
 class LatticeVecEnv:
@@ -159,6 +178,10 @@ class LatticeVecEnv:
         """(n_cells, N, N, 3) uint8: the rendered views of the clean imagery (built once)."""
         if self._clean is None:
             n = self.env.camera.size_px
+            check_table_memory(self.n_cells * max(1, self.n_variants) * n * n * 3,
+                               f"{self.n_cells:,} cells of {n} px views"
+                               + (f" in {self.n_variants} imagery variants"
+                                  if self.n_variants > 1 else ""))
             out = np.empty((self.n_cells, n, n, 3), np.uint8)
             for v, (ti, cell) in enumerate(self.view_cells()):
                 out[v] = self.env.observation_at(ti, cell)

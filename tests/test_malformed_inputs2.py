@@ -354,6 +354,10 @@ def test_pickled_code_in_a_checkpoint_is_refused_without_torchs_advice(tmp_path)
         load_checkpoint(tmp_path / "evil.pt")
     assert "weights_only" not in str(info.value) and "callable 'print'" in str(info.value)
     assert "safe_globals" not in str(info.value)
+    (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(CheckpointError, match="corrupt or truncated") as info:
+        load_checkpoint(tmp_path / "junk.pt")
+    assert "weights_only" not in str(info.value)
 
 
 def test_outputs_that_are_not_finite_are_refused_before_arming(checkpoint, tmp_path):
@@ -485,3 +489,110 @@ def test_a_toml_file_that_is_not_utf8_is_named(tmp_path, capsys, package):
     exp.write_bytes(b'name = "caf\xe9"\n')
     rc, _, err = _cli(["experiment", "run", exp], capsys)
     _one_line_error(rc, err, f"{exp} is not UTF-8 text")
+
+
+# -- 3. numbers are bounded where they enter -----------------------------------------------
+
+@pytest.fixture(scope="module")
+def tasks_json(package, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("tasks") / "t.json"
+    assert main(["tasks", "make", str(package), "--kind", "scene", "--alts", "15", "--step",
+                 "10", "--max-blind", "none", "-o", str(out)]) == 0
+    return out
+
+
+def _edited_tasks(tasks_json: Path, tmp_path: Path, edit) -> Path:
+    d = json.loads(tasks_json.read_text())
+    edit(d)
+    out = tmp_path / "edited.json"
+    out.write_text(json.dumps(d))  # json writes NaN as NaN, which Python reads back
+    return out
+
+
+@pytest.mark.parametrize("edit,needle", [
+    (lambda d: d.update(meta="fast"), "'meta' must be an object"),
+    (lambda d: d["tasks"][0].update(region_m=[0, 50]), "must be 4 finite numbers"),
+    (lambda d: d["tasks"][0].update(region_m=[float("nan"), 0, 50, 50]),
+     "must be 4 finite numbers"),
+    (lambda d: d["tasks"][0].update(step_m=0.001), "use a step of at least"),
+    (lambda d: d["tasks"][0].update(alt_m=1e300), "altitude 1e+300 m must be within"),
+    (lambda d: d["tasks"][0].update(max_steps=-3), "max_steps -3 must be within"),
+])
+def test_task_files_out_of_bounds_are_one_line(tasks_json, package, checkpoint, tmp_path,
+                                                capsys, edit, needle):
+    bad = _edited_tasks(tasks_json, tmp_path, edit)
+    for argv in (["tiles", "preview", package, "--tasks", bad, "-o", tmp_path / "p.png"],
+                 ["eval", checkpoint, "--scene", package, "--tasks", bad]):
+        rc, _, err = _cli(argv, capsys)
+        _one_line_error(rc, err, needle)
+    assert not (tmp_path / "p.png").exists()
+
+
+def test_a_huge_lattice_is_refused_before_allocating(package, tmp_path, capsys):
+    rc, _, err = _cli(_make_tasks(package, tmp_path / "t.json")[:-2] + [
+        "-o", tmp_path / "t.json", "--step", "0.001"], capsys)
+    _one_line_error(rc, err, "cells, more than the 1,000,000 one task may have")
+    assert not (tmp_path / "t.json").exists()
+
+
+def test_a_view_table_larger_than_memory_is_refused(monkeypatch):
+    import geonav.vecenv
+    from geonav.errors import TaskError
+    from geonav.policy.testing import tiny_env_factory
+
+    monkeypatch.setattr(geonav.vecenv, "physical_memory_bytes", lambda: 10_000)
+    venv = geonav.vecenv.LatticeVecEnv(tiny_env_factory()(), 2)
+    with pytest.raises(TaskError, match="GiB, more than this machine.s .* allow; use a larger"):
+        venv.image_table()
+
+
+@pytest.mark.parametrize("argv,needle", [
+    (["tiles", "ingest", "{src}", "--name", "A", "--out", "{out}", "--gsd", "1e308"],
+     "--gsd 1e+308 m/px must be within"),
+    (["tiles", "ingest", "{src}", "--name", "A", "--out", "{out}", "--origin",
+      "4.48,51.92,1e300"], "altitude 1e+300 m is outside"),
+    (["tiles", "ingest", "{src}", "--name", "A", "--out", "{out}", "--origin",
+      "4.48,51.92,20000"], "is not a ground height"),
+    (["tiles", "ingest", "{src}", "--name", "A", "--out", "{out}", "--ground-alt", "-3000"],
+     "is not a ground height"),
+    (["tiles", "synth", "--out", "{out}", "--size", "1e308"], "over the memory budget"),
+    (["tiles", "synth", "--out", "{out}", "--size", "2", "--gsd", "1"], "give --size of at"),
+    (["tiles", "synth", "--out", "{out}", "--seed", str(2**64)], "must be a seed within"),
+    (["tasks", "make", "{pkg}", "-o", "{out}.json", "--seed", str(2**64)], "must be a seed"),
+    (["train", "--scene", "{pkg}", "--tasks", "t.json", "--out", "{out}", "--seed", "-1"],
+     "--seed"),
+    (["eval", "x.pt", "--scene", "{pkg}", "--tasks", "t.json", "--seed", str(2**64)],
+     "must be a seed"),
+    (["fly", "x.pt", "--scene", "{pkg}", "--connect", "udpin:0.0.0.0:99999", "--target",
+      "1,1"], "port 99999 is not a port"),
+    (["fly", "x.pt", "--scene", "{pkg}", "--connect", "/dev/ttyACM0:99999999999",
+      "--target", "1,1"], "baud rate 99999999999 is out of range"),
+])
+def test_numbers_out_of_bounds_are_one_line_and_nothing_written(tmp_path, capsys, utm_tif,
+                                                                package, argv, needle):
+    work = tmp_path / "work"
+    work.mkdir()
+    args = [a.format(src=utm_tif, out=work / "out", pkg=package) for a in argv]
+    rc, _, err = _cli(args, capsys)
+    _one_line_error(rc, err, needle)
+    assert list(work.iterdir()) == []
+
+
+def test_the_emulator_refuses_a_port_out_of_range():
+    from geonav.errors import FlightError
+    from geonav.mavlink_bridge.emulator import Emulator, EmulatorConfig
+
+    with pytest.raises(FlightError, match="port 99999 is not a port"):
+        Emulator(EmulatorConfig(listen="udp:127.0.0.1:99999")).start()
+
+
+def test_experiment_without_stages_or_with_negative_seeds_is_refused(tmp_path, capsys):
+    (tmp_path / "empty.toml").write_text("")
+    rc, _, err = _cli(["experiment", "run", tmp_path / "empty.toml"], capsys)
+    _one_line_error(rc, err, "defines no [stages.NAME] table: nothing to run")
+    neg = tmp_path / "neg.toml"
+    neg.write_text('seeds = [-1]\n[scenes.A]\nsynthetic = "residential"\n[tasks.t]\n'
+                   'scene = "A"\n[stages.s]\nmode = "train"\ntasks = "t"\n')
+    rc, _, err = _cli(["experiment", "run", neg], capsys)
+    _one_line_error(rc, err, "seeds [-1] must be within 0..4294967295")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["empty.toml", "neg.toml"]

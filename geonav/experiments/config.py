@@ -278,6 +278,10 @@ def _build(cls: type, name: str, d: Any, where: str) -> Any:
         raise ConfigError(f"{where}: {err}") from err
 
 
+#: Largest seed (a 32-bit unsigned integer, as every RNG geonav seeds accepts it).
+MAX_SEED = 2**32 - 1
+
+
 def parse_config(data: dict[str, Any], source: str = "") -> ExperimentConfig:
     """Validate a parsed TOML document into an :class:`ExperimentConfig`."""
     known = {"name", "seeds", "convergence", "scenes", "tasks", "stages", "compare",
@@ -358,6 +362,12 @@ def _backend(d: Any) -> BackendSpec:
 def _check(cfg: ExperimentConfig) -> None:
     if not cfg.seeds:
         raise ConfigError("seeds must list at least one seed")
+    bad = [s for s in cfg.seeds if not 0 <= s <= MAX_SEED]
+    if bad:
+        raise ConfigError(f"{cfg.source}: seeds {bad} must be within 0..{MAX_SEED}".strip(": "))
+    if not cfg.stages:
+        raise ConfigError(f"{cfg.source or 'the experiment'} defines no [stages.NAME] table: "
+                          "nothing to run; see configs/quick.toml for a complete experiment")
     for s in cfg.scenes.values():
         if (s.synthetic is None) == (s.path is None):
             raise ConfigError(f"[scenes.{s.name}] needs exactly one of synthetic or path")

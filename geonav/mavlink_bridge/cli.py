@@ -154,6 +154,10 @@ def run_fly(args: argparse.Namespace) -> int:
         raise ConfigError("give --connect URL, or --dry-run to fly against the emulator")
     if args.target is None and args.task is None:
         raise ConfigError("give --target IX,IY or --task FILE[:NAME]")
+    if args.connect and not args.dry_run:
+        from geonav.mavlink_bridge.vehicle import parse_connection
+
+        parse_connection(args.connect)  # a bad port is refused before anything loads
     try:
         from geonav.cliutil import progress_bar
 

@@ -260,6 +260,9 @@ class Emulator:
             port = int(port_s)
         except ValueError as err:
             raise FlightError(f"emulator listen address {self.cfg.listen!r} has no port") from err
+        if not 0 <= port <= 65535:
+            raise FlightError(f"emulator listen address {self.cfg.listen!r}: port {port} is "
+                              "not a port (0..65535; 0 picks a free one)")
         host = host or "127.0.0.1"
         if kind == "udp":
             self._udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)

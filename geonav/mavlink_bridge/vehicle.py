@@ -163,10 +163,10 @@ def parse_connection(url: str, baud: int | None = None) -> Connection:
         path = text.removeprefix("serial:").removeprefix("//")
         dev, sep, rate = path.rpartition(":")
         if sep and rate.isdigit():
-            return Connection("serial", dev, int(rate), raw=url)
+            return Connection("serial", dev, _baud(int(rate), url), raw=url)
         if baud is None:
             raise ConfigError(f"serial connection {url!r} needs a baud rate, e.g. {url}:921600")
-        return Connection("serial", path, int(baud), raw=url)
+        return Connection("serial", path, _baud(int(baud), url), raw=url)
     m = _URL.match(text)
     if m is None:
         raise ConfigError(
@@ -179,7 +179,23 @@ def parse_connection(url: str, baud: int | None = None) -> Connection:
         raise ConfigError(
             f"connection kind {m['kind']!r} in {url!r}: use udpin, udpout, tcp, tcpin"
         )
-    return Connection(kind, m["host"] or "0.0.0.0", int(m["port"]), raw=url)
+    port = int(m["port"])
+    if not 1 <= port <= 65535:
+        raise ConfigError(f"connection {url!r}: port {port} is not a port (1..65535); PX4 SITL "
+                          "listens on 14540, ArduPilot SITL on tcp 5760")
+    return Connection(kind, m["host"] or "0.0.0.0", port, raw=url)
+
+
+#: Serial baud rates geonav accepts (the common ones run from 9600 to 921600; USB links
+#: reach a few Mbaud).
+BAUD_RANGE = (50, 20_000_000)
+
+
+def _baud(rate: int, url: str) -> int:
+    if not BAUD_RANGE[0] <= rate <= BAUD_RANGE[1]:
+        raise ConfigError(f"serial connection {url!r}: baud rate {rate} is out of range "
+                          f"{BAUD_RANGE[0]}..{BAUD_RANGE[1]}; autopilots use 57600 or 921600")
+    return rate
 
 
 def open_vehicle(

@@ -178,18 +178,18 @@ def load_checkpoint(path: str | os.PathLike[str]) -> Checkpoint:
         blob = torch.load(path, map_location="cpu", weights_only=True)
     except (RuntimeError, EOFError, OSError, ValueError, zipfile.BadZipFile,
             __import__("pickle").UnpicklingError) as err:
-        lines = [ln.strip() for ln in str(err).splitlines() if ln.strip()] or [""]
-        if "weights only load failed" in lines[0].lower():
+        found = re.search(r"GLOBAL ([\w.]+)", str(err))
+        if found:
             # torch's message advises weights_only=False: exactly what would run the payload
-            found = re.search(r"GLOBAL ([\w.]+)", str(err))
-            what = f"a reference to the Python callable {found.group(1)!r}, which loading " \
-                "would call" if found else "Python objects besides tensors"
             raise CheckpointError(
-                f"checkpoint {path} holds more than weights ({what}); geonav never runs code "
-                "from a checkpoint, and this one was not written by geonav or was altered: "
-                "do not load it elsewhere either; use a checkpoint that geonav train wrote") \
-                from None
-        why = next((ln for ln in lines if "WeightsUnpickler error" in ln), lines[0])[:200]
+                f"checkpoint {path} holds more than weights (a reference to the Python "
+                f"callable {found.group(1)!r}, which loading would call); geonav never runs "
+                "code from a checkpoint, and this one was not written by geonav or was "
+                "altered: do not load it elsewhere either; use a checkpoint that geonav "
+                "train wrote") from None
+        lines = [ln.strip() for ln in str(err).splitlines() if ln.strip() and not re.search(
+            r"weights_only|torch\.load|file an issue|safe_globals|trusted source", ln)]
+        why = (lines[0] if lines else type(err).__name__)[:200]
         raise CheckpointError(f"checkpoint {path} is corrupt or truncated and cannot be read "
                               f"({type(err).__name__}: {why}); "
                               "use another checkpoint, e.g. the run's checkpoints/latest.pt") \

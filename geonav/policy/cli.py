@@ -22,6 +22,7 @@ from geonav.cliutil import (
     nonneg_int,
     positive_float,
     positive_int,
+    seed_int,
 )
 from geonav.errors import ConfigError
 
@@ -49,7 +50,7 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument("--out", required=True, metavar="RUN_DIR", help="run folder")
     p.add_argument("--resume", default=None, metavar="CKPT", help="continue from a checkpoint "
                    "(episode count, weights, optimiser and RNG state)")
-    p.add_argument("--seed", type=nonneg_int, default=None, help=ah["seed"])
+    p.add_argument("--seed", type=seed_int, default=None, help=ah["seed"])
     p.add_argument("--obs-size", type=positive_int, default=None, metavar="PX",
                    help="observation side in pixels (default: the task set's camera)")
     p.add_argument("--encoder", choices=ENCODERS, default=None, help=nh["encoder"])
@@ -82,7 +83,7 @@ def add_parser(subparsers: Any) -> None:
                    help="fly every task at this altitude (default: the tasks')")
     e.add_argument("--max-starts", type=positive_int, default=500, metavar="N",
                    help="evaluate at most N start cells in all (a seeded sample; default 500)")
-    e.add_argument("--seed", type=nonneg_int, default=0, help="seed of the start sample and of "
+    e.add_argument("--seed", type=seed_int, default=0, help="seed of the start sample and of "
                    "sampled actions")
     e.add_argument("--max-steps", type=positive_int, default=None, help="episode cap override")
     e.add_argument("--json", default=None, metavar="FILE", help="also write the results as JSON")

@@ -19,6 +19,7 @@ from geonav.cliutil import (
     nonneg_int,
     positive_float,
     positive_int,
+    seed_int,
 )
 from geonav.errors import ConfigError
 from geonav.policy.config import step_budget_first
@@ -204,7 +205,7 @@ def _common(p: argparse.ArgumentParser, algo_default: str) -> None:
     p.add_argument("--out", required=True, metavar="RUN_DIR", help="run folder")
     p.add_argument("--workers", type=nonneg_int, default=None, help="worker processes (0: one "
                    "process, deterministic)")
-    p.add_argument("--seed", type=nonneg_int, default=None, help="seed")
+    p.add_argument("--seed", type=seed_int, default=None, help="seed")
     p.add_argument("--lr", type=positive_float, default=None,
                    help="the base algorithm's Adam lr (ISAR: beta)")
     p.add_argument("--obs-size", type=positive_int, default=None, metavar="PX",

@@ -14,6 +14,7 @@ from geonav.cliutil import (
     nonneg_int,
     positive_float,
     positive_int,
+    seed_int,
 )
 from geonav.errors import GeonavWarning
 from geonav.tiles import DEFAULT_MEMORY_BUDGET_MB, DSM_UNIT_CHOICES
@@ -75,7 +76,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--size", type=positive_float, default=1200.0,
                    help="side in metres (default 1200)")
     p.add_argument("--gsd", type=positive_float, default=0.25, help="m/px (default 0.25)")
-    p.add_argument("--seed", type=nonneg_int, default=0)
+    p.add_argument("--seed", type=seed_int, default=0)
     p.add_argument("--origin", type=parse_lonlat, help="scene centre lon,lat[,alt]")
     p.add_argument("--keep-sources", help="folder to keep the generated GeoTIFFs in")
     p.add_argument("--force", action="store_true", help="replace an existing package")

@@ -30,7 +30,7 @@ import numpy as np
 from affine import Affine
 
 from geonav.errors import GeonavWarning, IngestError, NoOverlap
-from geonav.geo import LonLat, scene_crs
+from geonav.geo import GROUND_ALT_RANGE_M, LonLat, scene_crs
 from geonav.outputs import check_replaceable, not_a_scene_package, output_lock
 from geonav.scene import Scene, clean_stale_temps, temp_dir
 from geonav.tiles.raster import (
@@ -75,6 +75,12 @@ class SceneGrid:
         return RioCRS.from_wkt(scene_crs(self.origin).to_wkt())
 
 
+#: Fewest pixels a source raster and a scene must have along each side.
+MIN_SCENE_PX = 16
+
+#: Coarsest GSD (m/px) a scene may have: a 300 m view of 84 px is 7 m/px already.
+MAX_GSD_M = 1000.0
+
 #: How far (m) the scene origin may lie from the imagery: the local tmerc is exact near
 #: its centre, and an origin far off is almost always a lat/lon swap or a typo.
 MAX_ORIGIN_OFFSET_M = 5000.0
@@ -117,6 +123,15 @@ def plan_grid(
     if gsd_m is not None and not (math.isfinite(gsd_m) and gsd_m > 0):
         raise IngestError(f"gsd must be a positive number of metres, got {gsd_m}")
     w, s, e, n = _unwrap([source_bounds_lonlat(src) for src in sources])
+    for src in sources:
+        rows, cols = src.data.shape[-2:]
+        if min(rows, cols) < MIN_SCENE_PX:
+            native = native_gsd_m(src, LonLat(_wrap_lon((w + e) / 2), (s + n) / 2, 0.0))
+            raise IngestError(
+                f"{src.info.get('file') or 'a source'} is {cols}x{rows} px; imagery needs at "
+                f"least {MIN_SCENE_PX} px each way ({MIN_SCENE_PX * native:.3g} m at its "
+                f"{native:.3g} m/px) to become a scene; a view at {MAX_ALT_M:g} m needs "
+                f"{2 * MAX_ALT_M:g} m of it")
     if bbox_lonlat is not None:
         bw, bs, be, bn = bbox_lonlat
         if not (bw < be and bs < bn) or not all(map(math.isfinite, bbox_lonlat)):
@@ -161,9 +176,10 @@ def plan_grid(
     x0, y0 = math.ceil(xmin / gsd_m - 1e-6) * gsd_m, math.ceil(ymin / gsd_m - 1e-6) * gsd_m
     x1, y1 = math.floor(xmax / gsd_m + 1e-6) * gsd_m, math.floor(ymax / gsd_m + 1e-6) * gsd_m
     width, height = round((x1 - x0) / gsd_m), round((y1 - y0) / gsd_m)
-    if width < 2 or height < 2:
-        raise IngestError(f"the scene would be {width}x{height} px at {gsd_m} m; "
-                          "the sources or the bbox are too small")
+    if width < MIN_SCENE_PX or height < MIN_SCENE_PX:
+        raise IngestError(f"the scene would be {width}x{height} px at {gsd_m} m/px; it needs "
+                          f"at least {MIN_SCENE_PX} px each way ({MIN_SCENE_PX * gsd_m:.3g} m): "
+                          "a larger --bbox or a finer --gsd")
     transform = Affine(gsd_m, 0.0, x0, 0.0, -gsd_m, y1)
     return SceneGrid(origin, float(gsd_m), transform, width, height)
 
@@ -380,8 +396,15 @@ def ingest(
         raise IngestError(f"scene name {name!r} must be a non-empty name without '/'")
     if ground_alt_m is not None and not math.isfinite(ground_alt_m):
         raise IngestError(f"ground_alt_m must be a finite height in metres, got {ground_alt_m}")
-    if gsd_m is not None and not (math.isfinite(gsd_m) and gsd_m > 0):
-        raise IngestError(f"gsd must be a positive number of metres, got {gsd_m}")
+    lo, hi = GROUND_ALT_RANGE_M
+    for what, alt in (("--ground-alt", ground_alt_m),
+                      ("the --origin altitude", None if origin is None else origin.alt_m)):
+        if alt is not None and math.isfinite(alt) and not lo <= alt <= hi:
+            raise IngestError(f"{what} {alt:g} m is not a ground height ({lo:g}..{hi:g} m "
+                              "above mean sea level); give the ground's height at the origin")
+    if gsd_m is not None and not (math.isfinite(gsd_m) and 0 < gsd_m <= MAX_GSD_M):
+        raise IngestError(f"--gsd {gsd_m} m/px must be within 0..{MAX_GSD_M:g} m/px (a view "
+                          f"at {MIN_ALT_M:g} m needs about 0.36 m/px)")
     if compress.upper() not in ("JPEG", "DEFLATE"):
         raise IngestError(f"compress {compress!r}: use JPEG or DEFLATE")
     if dem is not None and dsm is None:
@@ -509,6 +532,16 @@ def ingest_synthetic(
         progress: callback (phase, fraction).
     """
     check_writable_folder(Path(out))
+    if not (0 < gsd_m <= MAX_GSD_M and math.isfinite(gsd_m)) or \
+            not (0 < size_m and math.isfinite(size_m)):
+        raise IngestError(f"--size {size_m} m and --gsd {gsd_m} m/px must be positive, the GSD "
+                          f"at most {MAX_GSD_M:g} m/px")
+    side_px = size_m / gsd_m
+    # the synthetic image, its heights and the ingest's own grids: about 32 bytes a pixel
+    check_budget(side_px * side_px * 32, None, f"a {size_m:g} m synthetic scene at {gsd_m:g} m/px")
+    if side_px < MIN_SCENE_PX:
+        raise IngestError(f"a {size_m:g} m scene at {gsd_m:g} m/px is {side_px:.1f} px across; "
+                          f"give --size of at least {MIN_SCENE_PX * gsd_m:g} m")
     with output_lock(out, "--out"):  # held through the synthesis: minutes for a big scene
         check_replaceable(out, "scene package", force=overwrite,
                           why_not=not_a_scene_package, error=IngestError)

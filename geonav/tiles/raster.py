@@ -230,7 +230,10 @@ def _decimation(src: Any, window: Any, target_gsd_m: float | None) -> int:
         native = native_gsd_m(probe, LonLat((w + e) / 2 if w <= e else w, (s + n) / 2))
     except Exception:  # noqa: BLE001 - no decimation is always correct, only slower
         return 1
-    return max(1, int(target_gsd_m / native + 1e-6))
+    ratio = target_gsd_m / native
+    if not math.isfinite(ratio):  # a GSD like 1e308: read every pixel, plan_grid refuses it
+        return 1
+    return max(1, min(int(ratio + 1e-6), max(int(window.width), int(window.height), 1)))
 
 
 def open_raster(
