@@ -342,8 +342,6 @@ class Scene:
 
     def _manifest(self, folder: Path) -> dict[str, Any]:
         xmin, ymin, xmax, ymax = self.bounds_m
-        corners = [self.frame.to_lonlat(ScenePoint(x, y))
-                   for x in (xmin, xmax) for y in (ymin, ymax)]
         manifest = dict(self.manifest)
         manifest.update(
             schema_version=SCHEMA_VERSION,
@@ -355,10 +353,7 @@ class Scene:
             height=self.height,
             bounds_m=[xmin, ymin, xmax, ymax],
             # [west, south, east, north]; west > east when the scene crosses 180 degrees
-            bounds_wgs84=[_lon_span([c.lon_deg for c in corners])[0],
-                          min(c.lat_deg for c in corners),
-                          _lon_span([c.lon_deg for c in corners])[1],
-                          max(c.lat_deg for c in corners)],
+            bounds_wgs84=grid_bounds_wgs84(self.frame, self.bounds_m),
             origin=dict(lon_deg=self.origin.lon_deg, lat_deg=self.origin.lat_deg,
                         alt_m=self.origin.alt_m, alt_reference="AMSL (ground at origin)"),
             frame="local tmerc: +x east, +y north; NED north = y, east = x",
@@ -378,8 +373,10 @@ class Scene:
 
         Besides the manifest's fields and types, the rasters must agree with it:
         ortho and DSM on the manifest grid (size, transform, CRS), ``gsd_m`` equal
-        to the transform's pixel size, and the CRS centred on the recorded origin
-        (else the flight frame would be displaced).
+        to the transform's pixel size, ``bounds_m`` and ``bounds_wgs84`` those of the
+        grid, and the CRS centred on the recorded origin (else the flight frame would
+        be displaced). A raster's sha256 is checked whenever it is decoded (the first
+        open, and after the file changed); ``verify_checksums`` checks it on every open.
         """
         import rasterio
         from rasterio.errors import RasterioError
@@ -393,8 +390,8 @@ class Scene:
         ortho_path = folder / manifest["ortho"]["file"]
         if not ortho_path.is_file():
             raise SceneError(f"{folder}: {ortho_path.name} is missing")
-        if verify_checksums and sha256_file(ortho_path) != manifest["ortho"].get("sha256"):
-            problems.append(f"{ortho_path.name} does not match its sha256 in {MANIFEST}")
+        if verify_checksums:
+            problems += _checksum_problems(folder, manifest)
         try:
             origin = LonLat(**{k: float(manifest["origin"][k])
                                for k in ("lon_deg", "lat_deg", "alt_m")})
@@ -419,7 +416,7 @@ class Scene:
                 if problems:
                     raise SceneError(f"scene package {folder} is inconsistent: "
                                      + "; ".join(problems))
-                rgb, mask = mapped_ortho(ortho_path, src)
+                rgb, mask = mapped_ortho(ortho_path, src, manifest["ortho"].get("sha256"))
                 ortho_crs = src.crs
             dsm = None
             if manifest.get("dsm"):
@@ -445,7 +442,7 @@ class Scene:
                             "re-ingest the scene with --dsm")
                     if src.count != 1:
                         raise SceneError(f"{dsm_path.name} must have one band, has {src.count}")
-                    dsm = mapped_dsm(dsm_path, src)
+                    dsm = mapped_dsm(dsm_path, src, manifest["dsm"].get("sha256"))
         except RasterioError as err:
             raise SceneError(f"cannot read the rasters of {folder}: {err}") from err
         _check_origin(folder, manifest, origin)
@@ -457,10 +454,60 @@ class Scene:
                              f"transform's pixel size {transform.a}; re-create the package")
         if dsm is not None and np.isinf(dsm).any():
             raise SceneError(f"scene {folder}: {manifest['dsm']['file']} holds infinite heights")
+        _check_bounds(folder, manifest, transform, origin)
         scene = cls(manifest["name"], rgb, mask, float(manifest["gsd_m"]), transform, origin,
                     dsm, manifest, folder)
         scene.__dict__["_mapped"] = (rgb, mask, dsm)
         return scene
+
+
+def _checksum_problems(folder: Path, manifest: dict[str, Any]) -> list[str]:
+    """The package's rasters whose bytes no longer match their sha256 in the manifest."""
+    problems = []
+    for key in ("ortho", "dsm"):
+        entry = manifest.get(key)
+        if isinstance(entry, dict) and (folder / entry["file"]).is_file() and \
+                sha256_file(folder / entry["file"]) != entry.get("sha256"):
+            problems.append(f"{entry['file']} does not match its sha256 in {MANIFEST} (the "
+                            "file changed after geonav wrote it); re-create the package")
+    return problems
+
+
+def verify_sha256(path: Path, expected: str | None) -> None:
+    """SceneError when the file's sha256 is not the one its manifest records."""
+    if expected is not None and sha256_file(path) != expected:
+        raise SceneError(f"{path} does not match its sha256 in {MANIFEST} (the file changed "
+                         "after geonav wrote it); re-create the package with 'geonav tiles "
+                         "ingest ... --force'")
+
+
+#: How far a recorded bound may sit from the grid's own: 1 mm, and 1e-7 degrees (1 cm).
+BOUNDS_TOL_M, BOUNDS_TOL_DEG = 1e-3, 1e-7
+
+
+def grid_bounds_wgs84(frame: SceneFrame, bounds_m: tuple[float, ...]) -> list[float]:
+    """[west, south, east, north] of a scene-metre box; west > east across 180 degrees."""
+    xmin, ymin, xmax, ymax = bounds_m
+    corners = [frame.to_lonlat(ScenePoint(x, y)) for x in (xmin, xmax) for y in (ymin, ymax)]
+    west, east = _lon_span([c.lon_deg for c in corners])
+    return [west, min(c.lat_deg for c in corners), east, max(c.lat_deg for c in corners)]
+
+
+def _check_bounds(folder: Path, manifest: dict[str, Any], transform: Affine,
+                  origin: LonLat) -> None:
+    # The bounds are what readers of scene.json (and task sampling by hand) go by: a
+    # hand-edited pair that no longer describes the grid would mislead them silently.
+    w, h, gsd = manifest["width"], manifest["height"], transform.a
+    grid = (transform.c, transform.f - h * gsd, transform.c + w * gsd, transform.f)
+    if not np.allclose(manifest["bounds_m"], grid, rtol=0, atol=BOUNDS_TOL_M):
+        raise SceneError(f"scene {folder}: bounds_m {manifest['bounds_m']} is not the grid's "
+                         f"{[round(v, 3) for v in grid]} (transform and size); scene.json was "
+                         "edited by hand: re-create the package")
+    wgs84 = grid_bounds_wgs84(SceneFrame(origin), grid)
+    if not np.allclose(manifest["bounds_wgs84"], wgs84, rtol=0, atol=BOUNDS_TOL_DEG):
+        raise SceneError(f"scene {folder}: bounds_wgs84 {manifest['bounds_wgs84']} is not the "
+                         f"grid's {[round(v, 7) for v in wgs84]}; scene.json was edited by "
+                         "hand: re-create the package")
 
 
 #: How far (m) the recorded origin may sit from the centre of the recorded CRS.
@@ -637,24 +684,34 @@ def cached_array(path: Path, build: Callable[[], np.ndarray]) -> np.ndarray:
     return np.asarray(np.load(path, mmap_mode="r"))
 
 
-def mapped_ortho(path: Path, src: Any) -> tuple[np.ndarray, np.ndarray]:
+def mapped_ortho(path: Path, src: Any, sha256: str | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
     """The ortho's (H, W, 3) uint8 pixels and (H, W) bool mask as read-only memory maps.
 
     Decoded from the open dataset ``src`` on first use into the package's raster cache
-    (:func:`raster_cache_dir`); later opens, in any process, only map the files.
+    (:func:`raster_cache_dir`); later opens, in any process, only map the files. A
+    decode first checks the file against ``sha256`` (its manifest's), when given.
     """
     cache, key = raster_cache_dir(path.parent), file_key(path)
-    rgb = cached_array(cache / f"{path.stem}.rgb-{key}.npy",
-                       lambda: np.moveaxis(src.read(), 0, 2))
+
+    def decode() -> np.ndarray:
+        verify_sha256(path, sha256)
+        return np.moveaxis(src.read(), 0, 2)
+
+    rgb = cached_array(cache / f"{path.stem}.rgb-{key}.npy", decode)
     mask = cached_array(cache / f"{path.stem}.mask-{key}.npy", lambda: src.dataset_mask() > 0)
     return rgb, mask
 
 
-def mapped_dsm(path: Path, src: Any) -> np.ndarray:
+def mapped_dsm(path: Path, src: Any, sha256: str | None = None) -> np.ndarray:
     """The DSM's (H, W) float32 metres as a read-only memory map (see :func:`mapped_ortho`)."""
     cache, key = raster_cache_dir(path.parent), file_key(path)
-    return cached_array(cache / f"{path.stem}.dsm-{key}.npy",
-                        lambda: src.read(1).astype(np.float32))
+
+    def decode() -> np.ndarray:
+        verify_sha256(path, sha256)
+        return src.read(1).astype(np.float32)
+
+    return cached_array(cache / f"{path.stem}.dsm-{key}.npy", decode)
 
 
 _SHARED: weakref.WeakValueDictionary[tuple[str, int], Scene] = weakref.WeakValueDictionary()

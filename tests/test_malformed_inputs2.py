@@ -596,3 +596,96 @@ def test_experiment_without_stages_or_with_negative_seeds_is_refused(tmp_path, c
     rc, _, err = _cli(["experiment", "run", neg], capsys)
     _one_line_error(rc, err, "seeds [-1] must be within 0..4294967295")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["empty.toml", "neg.toml"]
+
+
+# -- 5. cross-checks on open and at ingest --------------------------------------------------
+
+def _copy_package(package: Path, tmp_path: Path) -> Path:
+    import shutil
+
+    out = tmp_path / "P"
+    shutil.copytree(package, out, ignore=shutil.ignore_patterns(".geonav-cache"))
+    return out
+
+
+@pytest.mark.parametrize("key,shift,needle", [
+    ("bounds_m", 30.0, "bounds_m .* is not the grid's"),
+    ("bounds_wgs84", 0.01, "bounds_wgs84 .* is not the grid's"),
+])
+def test_hand_edited_bounds_are_refused(package, tmp_path, capsys, key, shift, needle):
+    from geonav.errors import SceneError
+    from geonav.scene import Scene
+
+    out = _copy_package(package, tmp_path)
+    m = json.loads((out / "scene.json").read_text())
+    m[key] = [v + shift for v in m[key]]
+    (out / "scene.json").write_text(json.dumps(m))
+    with pytest.raises(SceneError, match=needle):
+        Scene.open(out)
+    rc, _, err = _cli(["tiles", "info", out], capsys)
+    _one_line_error(rc, err, "edited by hand")
+
+
+def test_an_ortho_that_changed_is_refused_and_verify_checks_every_open(package, tmp_path,
+                                                                       capsys):
+    import os
+
+    from geonav.errors import SceneError
+    from geonav.scene import Scene
+
+    out = _copy_package(package, tmp_path)
+    Scene.open(out)  # decoded and cached: intact
+    ortho = out / "ortho.tif"
+    st = ortho.stat()
+    data = bytearray(ortho.read_bytes())
+    data[-1] ^= 0xFF  # one byte, same size, same mtime: the cache still matches
+    ortho.write_bytes(bytes(data))
+    os.utime(ortho, ns=(st.st_atime_ns, st.st_mtime_ns))
+    Scene.open(out)
+    rc, _, err = _cli(["tiles", "info", out, "--verify"], capsys)
+    _one_line_error(rc, err, "ortho.tif does not match its sha256")
+    with open(ortho, "ab") as f:  # a file that changed visibly is checked on its decode
+        f.write(b"\0" * 16)
+    with pytest.raises(SceneError, match="does not match its sha256"):
+        Scene.open(out)
+
+
+def test_an_image_is_not_a_surface_model(tmp_path, capsys, utm_tif):
+    t = Affine(1, 0, X0, 0, -1, Y0)
+    grey = _write(tmp_path / "grey.tif", np.full((160, 160), 9, np.uint8), UTM31, t)
+    for dsm, needle in ((utm_tif, "has 3 bands (red,green,blue)"),
+                        (grey, "holds uint8 values and states no height unit")):
+        rc, _, err = _cli(_ingest_argv(utm_tif, tmp_path / "S", "--dsm", dsm), capsys)
+        _one_line_error(rc, err, needle)
+        assert not (tmp_path / "S").exists()
+    rc, _, err = _cli(_ingest_argv(utm_tif, tmp_path / "S", "--dsm", grey, "--dsm-units", "m",
+                                   "--ground-alt", "0"), capsys)
+    assert rc == 0, err
+
+
+def test_tms_flag_against_the_exports_own_latitude(tmp_path, capsys):
+    try:
+        from test_tiles_support import marker_setup, write_xyz
+    except ImportError:  # tests/ imported as a package
+        from tests.test_tiles_support import marker_setup, write_xyz
+
+    lon, lat, mpx, tiles = marker_setup(4.4777, 51.9244, 18)
+    folder = write_xyz(tmp_path / "export", 18, tiles, mpx)
+    (folder / "metadata.json").write_text(json.dumps(
+        {"bounds": f"{lon - 0.001},{lat - 0.001},{lon + 0.001},{lat + 0.001}"}))
+    rc, _, err = _cli(_ingest_argv(folder, tmp_path / "S", "--tms"), capsys)
+    _one_line_error(rc, err, "drop --tms")
+    assert not (tmp_path / "S").exists()
+    assert _cli(_ingest_argv(folder, tmp_path / "S"), capsys)[0] == 0
+
+
+@pytest.mark.parametrize("shape", [(1, 160), (160, 1), (1, 100_000)])
+def test_too_small_rasters_are_refused_with_the_size_needed(tmp_path, capsys, shape):
+    import time
+
+    h, w = shape
+    path = _write(tmp_path / "thin.tif", _texture(h, w), UTM31, Affine(0.5, 0, X0, 0, -0.5, Y0))
+    t0 = time.monotonic()
+    rc, _, err = _cli(_ingest_argv(path, tmp_path / "S"), capsys)
+    _one_line_error(rc, err, f"is {w}x{h} px; imagery needs at least 16 px each way (8 m")
+    assert time.monotonic() - t0 < 30 and not (tmp_path / "S").exists()

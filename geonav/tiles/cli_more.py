@@ -52,6 +52,9 @@ def add_parsers(tsub: argparse._SubParsersAction) -> None:
     p.add_argument("--obs-size", type=positive_int, default=84, help="camera image size in px (84)")
     p.add_argument("--fov", type=positive_float, default=90.0, help="camera field of view, degrees")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.add_argument("--verify", action="store_true",
+                   help="check every raster against its sha256 in scene.json (reads them all; "
+                   "without it, a raster is checked only when it is decoded anew)")
     p.set_defaults(handler=run_info)
 
     p = tsub.add_parser("preview", help="draw a scene with tasks and camera footprints to a PNG")
@@ -108,7 +111,7 @@ def run_info(args: argparse.Namespace) -> int:
     from geonav.scene import Scene
     from geonav.tiles.info import format_summary, summarize
 
-    scene = Scene.open(args.scene)
+    scene = Scene.open(args.scene, verify_checksums=args.verify)
     summary = summarize(scene, camera=Camera(size_px=args.obs_size, fov_deg=args.fov))
     if args.json:
         json.dump(summary, sys.stdout, indent=2)

@@ -172,7 +172,10 @@ def plan_grid(
             f"origin {origin.lon_deg:.6f},{origin.lat_deg:.6f} is {offset / 1000:.1f} km from "
             f"the data (lon {_wrap_lon(w):.5f}..{_wrap_lon(e):.5f}, lat {s:.5f}..{n:.5f}); "
             f"give an --origin within {MAX_ORIGIN_OFFSET_M / 1000:.0f} km of it, longitude "
-            "first, or leave it out to use the centre")
+            "first, or leave it out to use the centre"
+            + ("; tile rows read in the wrong order put a scene in the other hemisphere: "
+               "check --tms" if any(src.info.get("scheme") in ("xyz", "tms")
+                                   for src in sources) else ""))
     x0, y0 = math.ceil(xmin / gsd_m - 1e-6) * gsd_m, math.ceil(ymin / gsd_m - 1e-6) * gsd_m
     x1, y1 = math.floor(xmax / gsd_m + 1e-6) * gsd_m, math.floor(ymax / gsd_m + 1e-6) * gsd_m
     width, height = round((x1 - x0) / gsd_m), round((y1 - y0) / gsd_m)

@@ -311,6 +311,7 @@ def open_raster(
                     data = np.repeat(data, 3, axis=0)
                 info_bands = indexes
             else:
+                check_height_raster(src, path, height_units)
                 check_budget(out_h * out_w * 4 * 3, memory_budget_mb,
                              f"reading {path.name} ({out_w}x{out_h} px)")
                 read["out_shape"] = (1, out_h, out_w)
@@ -366,6 +367,40 @@ def _expand_palette(src: Any, index: np.ndarray, mask: np.ndarray,
     warnings.warn(f"{path.name}: paletted image ({len(cmap)} colours) expanded to RGB",
                   GeonavWarning, stacklevel=3)
     return np.moveaxis(rgba[..., :3], 2, 0), mask & (rgba[..., 3] >= 128)
+
+
+def check_height_raster(src: Any, path: Path, override: str | None) -> None:
+    """Refuse a --dsm/--dem that is not a height raster: more than one band, a palette, or
+    integer values whose unit nothing states (8-bit imagery looks exactly like that).
+
+    Raises:
+        IngestError: naming the file, what it looks like and what to pass instead.
+    """
+    from rasterio.enums import ColorInterp
+
+    if src.count != 1:
+        interp = ",".join(c.name for c in src.colorinterp)
+        raise IngestError(
+            f"{path.name} has {src.count} bands ({interp}): a surface model (--dsm, --dem) has "
+            "one band of heights, so this looks like an image; give the height raster, or "
+            f"extract its band first, e.g. 'gdal_translate -b 1 {path.name} heights.tif'")
+    if src.colorinterp and src.colorinterp[0] == ColorInterp.palette:
+        raise IngestError(f"{path.name} is a paletted image, not a raster of heights; give "
+                          "the surface model (--dsm, --dem)")
+    if np.dtype(src.dtypes[0]).kind in "iu" and override is None and not _stated_unit(src):
+        raise IngestError(
+            f"{path.name} holds {src.dtypes[0]} values and states no height unit: an image "
+            "rather than heights? If it holds heights, say their unit with --dsm-units m "
+            "(or ft, us-ft)")
+
+
+def _stated_unit(src: Any) -> bool:
+    """The raster states its height unit (a known band unit, or a vertical CRS)."""
+    unit = (src.units[0] or "").strip().lower() if src.units else ""
+    if unit in HEIGHT_UNITS:
+        return True
+    crs = parse_crs(src.crs.to_wkt())
+    return any(sub.is_vertical for sub in crs.sub_crs_list or [])
 
 
 def height_unit_factor(src: Any, path: Path, override: str | None) -> tuple[float, str]:

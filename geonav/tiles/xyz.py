@@ -429,6 +429,15 @@ def read_xyz(
             raise TileError(
                 f"{folder}: with --tms the zoom-{z} tiles land outside the bbox "
                 f"{fetched[0]} this cache was fetched for; its rows are XYZ, drop --tms")
+    # The latitude the data states (an export's metadata.json) or the user's --bbox: rows
+    # read in the wrong order put the scene in the other hemisphere, which both reveal.
+    for what, box in [("the bounds in its metadata.json", b) for b in _metadata_bounds(folder)] \
+            + ([("--bbox", tuple(bbox_lonlat))] if bbox_lonlat is not None else []):
+        if row_scheme_verdict(z, list(levels[z]), [box], stored_as_tms=tms) == "flipped":
+            raise TileError(
+                f"{folder}: read as {'TMS (--tms)' if tms else 'XYZ'} rows, its zoom-{z} "
+                f"tiles lie at latitudes away from {what} {_fmt_box(box)}, and read the other "
+                f"way they meet it; {'drop --tms' if tms else 'pass --tms'}")
     refs = []
     for (x, y_stored), path in levels[z].items():
         y = flip_y(z, y_stored) if tms else y_stored
@@ -445,6 +454,24 @@ def read_xyz(
 
 
 # -- row scheme checks -----------------------------------------------------------------------
+
+def _metadata_bounds(folder: Path) -> list[tuple[float, float, float, float]]:
+    """The 'bounds' of a tile export's ``metadata.json`` (mb-util, tippecanoe), if any."""
+    path = folder / "metadata.json"
+    try:
+        meta = json.loads(path.read_text()) if path.is_file() else {}
+    except (OSError, ValueError):
+        return []
+    bounds = meta.get("bounds") if isinstance(meta, dict) else None
+    if isinstance(bounds, list):
+        bounds = ",".join(str(v) for v in bounds)
+    box = parse_bounds(bounds) if isinstance(bounds, str) else None
+    return [box] if box is not None else []
+
+
+def _fmt_box(box: Sequence[float]) -> str:
+    return "(" + ", ".join(f"{v:.4f}" for v in box) + ")"
+
 
 def _fetched_bboxes(sidecar: dict[str, Any], z: int) -> list[tuple[float, ...]]:
     """The lon/lat bboxes a fetch cache was filled for at zoom ``z`` (from its sidecar)."""
