@@ -287,6 +287,19 @@ def seed_int(text: str) -> int:
     return value
 
 
+#: Highest altitude (m above take-off) geonav flies or plans a task at.
+MAX_ALT_M = 10_000.0
+
+
+def altitude_m(text: str) -> float:
+    """argparse type: an altitude in metres above ground, within 0..10 km."""
+    value = positive_float(text)
+    if value > MAX_ALT_M:
+        raise argparse.ArgumentTypeError(f"{text!r} m is above the {MAX_ALT_M:g} m geonav "
+                                         "flies at; give metres above the ground")
+    return value
+
+
 def float_list(text: str, *, positive: bool = True) -> tuple[float, ...]:
     """'300,75,45' -> (300.0, 75.0, 45.0); at least one value, each finite (and > 0)."""
     parts = [p.strip() for p in text.split(",")]

@@ -193,6 +193,16 @@ def not_a_task_file(path: Path) -> str | None:
     return None
 
 
+def not_an_evaluation(path: Path) -> str | None:
+    """Why ``path`` is not an evaluation JSON geonav wrote (``geonav eval --json``)."""
+    if path.is_symlink() or not path.is_file():
+        return "it is not a plain file"
+    data = _json_object(path)
+    if data is None or not {"greedy", "sampled", "random_walk_sr"} <= set(data):
+        return "it is not a geonav evaluation file"
+    return None
+
+
 #: Metadata that marks a picture as geonav's, by file format (matplotlib's keys).
 PICTURE_METADATA = {"png": {"Software": "geonav"}, "pdf": {"Creator": "geonav"},
                     "svg": {"Creator": "geonav"}}

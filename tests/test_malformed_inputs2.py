@@ -689,3 +689,41 @@ def test_too_small_rasters_are_refused_with_the_size_needed(tmp_path, capsys, sh
     rc, _, err = _cli(_ingest_argv(path, tmp_path / "S"), capsys)
     _one_line_error(rc, err, f"is {w}x{h} px; imagery needs at least 16 px each way (8 m")
     assert time.monotonic() - t0 < 30 and not (tmp_path / "S").exists()
+
+
+def test_eval_json_never_replaces_a_file_it_did_not_write(checkpoint, package, tasks_json,
+                                                          tmp_path, capsys):
+    mine = tmp_path / "results.json"
+    mine.write_text('{"my": "results"}')
+    argv = ["eval", checkpoint, "--scene", package, "--tasks", tasks_json, "--json", mine]
+    rc, _, err = _cli(argv, capsys)
+    _one_line_error(rc, err, "exists; pass --force")
+    rc, _, err = _cli([*argv, "--force"], capsys)
+    _one_line_error(rc, err, "not a geonav evaluation file")
+    assert mine.read_text() == '{"my": "results"}'
+
+
+@pytest.mark.parametrize("flag", ["--alt", "--max-alt"])
+def test_flight_altitudes_are_bounded(package, tmp_path, capsys, flag):
+    rc, _, err = _cli(["fly", "x.pt", "--scene", package, "--dry-run", "--target", "1,1",
+                       flag, "1e300"], capsys)
+    _one_line_error(rc, err, "m is above the 10000 m geonav flies at")
+
+
+def test_a_full_disk_during_ingest_is_one_line_and_leaves_nothing(tmp_path, capsys, utm_tif,
+                                                                   monkeypatch):
+    import rasterio as rio
+    from rasterio._err import CPLE_FileIOError
+
+    real_open = rio.open
+
+    def full_disk(path, mode="r", *args, **kw):
+        if mode == "w" and str(path).endswith("ortho.tif"):
+            raise CPLE_FileIOError(3, 3, f"{path}: No space left on device")
+        return real_open(path, mode, *args, **kw)
+
+    monkeypatch.setattr(rio, "open", full_disk)
+    rc, _, err = _cli(_ingest_argv(utm_tif, tmp_path / "S"), capsys)
+    _one_line_error(rc, err, "cannot write the scene package")
+    assert "No space left on device" in err and "free disk space" in err
+    assert list(tmp_path.iterdir()) == []  # no temp folder, no lock file, no package

@@ -15,7 +15,13 @@ import sys
 import threading
 from typing import Any
 
-from geonav.cliutil import finite_float, nonneg_float, positive_float, positive_int
+from geonav.cliutil import (
+    altitude_m,
+    finite_float,
+    nonneg_float,
+    positive_float,
+    positive_int,
+)
 from geonav.errors import ConfigError
 
 
@@ -63,13 +69,13 @@ def add_parser(subparsers: Any) -> None:
     )
     p.add_argument(
         "--alt",
-        type=positive_float,
+        type=altitude_m,
         help="flight altitude above take-off, m (default: the policy's; required for a "
         "policy trained at several altitudes)",
     )
     p.add_argument(
         "--max-alt",
-        type=positive_float,
+        type=altitude_m,
         default=120.0,
         help="altitude ceiling, m; a higher --alt/policy altitude is clamped with a warning",
     )

@@ -87,6 +87,8 @@ def add_parser(subparsers: Any) -> None:
                    "sampled actions")
     e.add_argument("--max-steps", type=positive_int, default=None, help="episode cap override")
     e.add_argument("--json", default=None, metavar="FILE", help="also write the results as JSON")
+    e.add_argument("--force", action="store_true",
+                   help="replace an existing --json file (only an evaluation geonav wrote)")
     e.add_argument("--no-progress", action="store_true", help="no progress bar")
     e.set_defaults(handler=run_eval)
     add_parsers(subparsers)
@@ -167,10 +169,21 @@ def run_train(args: argparse.Namespace) -> int:
 def run_eval(args: argparse.Namespace) -> int:
     """Handler of ``geonav eval``: greedy, sampled and view-ablated greedy from every start,
     beside chance."""
-    from geonav.policy import evaluation
-
     if args.max_starts < 1:
         raise ConfigError(f"--max-starts must be >= 1, got {args.max_starts}")
+    if args.json:
+        from geonav.outputs import check_replaceable, not_an_evaluation, output_lock
+
+        with output_lock(args.json, "--json"):  # checked before the minutes of evaluation
+            check_replaceable(args.json, "evaluation file", force=args.force,
+                              why_not=not_an_evaluation)
+            return _eval(args)
+    return _eval(args)
+
+
+def _eval(args: argparse.Namespace) -> int:
+    from geonav.policy import evaluation
+
     summary, res = evaluation.evaluate_checkpoint(
         args.checkpoint, args.scene, args.tasks, alt_m=args.altitude,
         max_steps=args.max_steps, max_starts=args.max_starts, seed=args.seed)
