@@ -727,3 +727,29 @@ def test_a_full_disk_during_ingest_is_one_line_and_leaves_nothing(tmp_path, caps
     _one_line_error(rc, err, "cannot write the scene package")
     assert "No space left on device" in err and "free disk space" in err
     assert list(tmp_path.iterdir()) == []  # no temp folder, no lock file, no package
+
+
+def test_a_curriculum_never_removes_a_stage_folder_it_did_not_write(package, tasks_json,
+                                                                     tmp_path):
+    from geonav.errors import ConfigError
+    from geonav.policy.curriculum import CurriculumConfig, run_curriculum
+    from geonav.policy.envs import EnvFactory
+    from geonav.policy.isar import ISARConfig
+
+    out = tmp_path / "cur"
+    stage = out / "stage_0_45m"
+    stage.mkdir(parents=True)
+    (stage / "field-notes.txt").write_text("mine")
+    f = EnvFactory(str(package), str(tasks_json), obs_size_px=32)
+    cfg = CurriculumConfig(levels_m=(45.0,), stage_episodes=2, teacher="none")
+    with pytest.raises(ConfigError, match=r"holds files a curriculum stage does not write "
+                                          r"\(field-notes.txt\)"):
+        run_curriculum(f, None, "isar", ISARConfig(workers=0, seed=0), cfg, out_dir=out)
+    assert (stage / "field-notes.txt").read_text() == "mine"
+    proc = _holding_lock(out)  # another curriculum, its first stage not yet checkpointed
+    try:
+        with pytest.raises(OutputBusy, match="being written by another geonav"):
+            run_curriculum(f, None, "isar", ISARConfig(workers=0, seed=0), cfg, out_dir=out)
+    finally:
+        proc.communicate("\n", timeout=30)
+    assert (stage / "field-notes.txt").read_text() == "mine"

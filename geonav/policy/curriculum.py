@@ -118,6 +118,21 @@ def _check_input_teacher(algo: str, init: str | None, net_cfg: NetConfig | None,
                           "(--prev-view-input)")
 
 
+#: What a stage folder holds before its first checkpoint (all written by its trainer).
+STAGE_FILES = ("config.json", "metrics.csv", "eval.csv", "checkpoints", "tb",
+               "progress.json", "learning_curve.png")
+
+
+def _remove_unstarted_stage(stage_dir: Path) -> None:
+    """Remove a stage folder of a run killed before its first checkpoint, so the stage
+    starts again; refuse one that holds anything a stage does not write."""
+    foreign = sorted(p.name for p in stage_dir.iterdir() if p.name not in STAGE_FILES)
+    if foreign:
+        raise ConfigError(f"{stage_dir} holds files a curriculum stage does not write "
+                          f"({', '.join(foreign[:5])}); move them away or choose another --out")
+    shutil.rmtree(stage_dir)
+
+
 def run_curriculum(env_factory: Any, init: str | None, algo: str, base_cfg: A3CConfig,
                    cfg: CurriculumConfig | None = None, *, out_dir: str | os.PathLike[str],
                    criterion: Any = None, net_cfg: NetConfig | None = None,
@@ -142,6 +157,23 @@ def run_curriculum(env_factory: Any, init: str | None, algo: str, base_cfg: A3CC
             (:func:`geonav.policy.engine.build_trainer`; a stage the batched engine does
             not implement, e.g. one with the KL teacher, runs on the async engine).
     """
+    from geonav.outputs import output_lock
+
+    # Held through every stage: a second curriculum into this folder is refused at once
+    # instead of taking a live stage folder for one killed before its first checkpoint.
+    with output_lock(out_dir, "--out"):
+        return _run_curriculum(env_factory, init, algo, base_cfg, cfg, out_dir=out_dir,
+                               criterion=criterion, net_cfg=net_cfg, callbacks=callbacks,
+                               mp_context=mp_context, engine=engine, batch=batch,
+                               device=device)
+
+
+def _run_curriculum(env_factory: Any, init: str | None, algo: str, base_cfg: A3CConfig,
+                    cfg: CurriculumConfig | None, *, out_dir: str | os.PathLike[str],
+                    criterion: Any, net_cfg: NetConfig | None, callbacks: Sequence[Callback],
+                    mp_context: str | None, engine: str, batch: int | None,
+                    device: str | None) -> CurriculumResult:
+    """The body of :func:`run_curriculum`, under the lock of ``out_dir``."""
     from geonav.convergence import ConvergenceCriterion
     from geonav.policy.checkpoint import check_compatible, load_checkpoint
     from geonav.policy.engine import build_trainer
@@ -173,7 +205,7 @@ def run_curriculum(env_factory: Any, init: str | None, algo: str, base_cfg: A3CC
         latest = stage_dir / "checkpoints" / "latest.pt"
         resume = str(latest) if latest.exists() else None
         if resume is None and stage_dir.exists():
-            shutil.rmtree(stage_dir)  # killed before its first checkpoint: start again
+            _remove_unstarted_stage(stage_dir)  # killed before its first checkpoint
         teacher = None
         prev_view = None
         if cfg.teacher_at(i):
