@@ -70,6 +70,30 @@ def rollout(env, task_index: int, policy: str, seed: int) -> tuple[list, dict]:
     return cells, info
 
 
+def _not_a_demo_summary(path: Path) -> str | None:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        data = None
+    ok = isinstance(data, dict) and data and all(
+        isinstance(v, dict) and "kind" in v and "lattice" in v for v in data.values())
+    return None if ok else "it is not a summary geonav demo wrote"
+
+
+def check_demo_outputs(out: Path) -> None:
+    """Refuse, before any work, a folder where the demo would replace files it did not write
+    (a re-run replaces its own: the demo refreshes its outputs)."""
+    from geonav.outputs import check_replaceable, not_a_geonav_picture, not_a_task_file
+
+    names = [name for name, _, _ in SCENES]
+    for path, kind, why_not in (
+            [(out / "tasks" / f"{n}-{k}.json", "task file", not_a_task_file)
+             for n in names for k in ("scene", "meta")]
+            + [(out / f"scene-{n}.png", "picture", not_a_geonav_picture) for n in names]
+            + [(out / "summary.json", "demo summary", _not_a_demo_summary)]):
+        check_replaceable(path, kind, force=True, why_not=why_not)
+
+
 def run(args: argparse.Namespace) -> int:
     from geonav.cliutil import progress_bar
     from geonav.env import GeoNavEnv
@@ -77,6 +101,7 @@ def run(args: argparse.Namespace) -> int:
     from geonav.viz import draw_scene
 
     out = Path(args.out)
+    check_demo_outputs(out)
     summary = {}
     for name, kind, seed in SCENES:
         scene = ensure_scene(out / "scenes" / name, name, kind, args.seed + seed, args.size,

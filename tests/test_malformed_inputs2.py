@@ -753,3 +753,12 @@ def test_a_curriculum_never_removes_a_stage_folder_it_did_not_write(package, tas
     finally:
         proc.communicate("\n", timeout=30)
     assert (stage / "field-notes.txt").read_text() == "mine"
+
+
+def test_the_demo_never_replaces_files_it_did_not_write(tmp_path, capsys):
+    out = tmp_path / "demo"
+    out.mkdir()
+    (out / "summary.json").write_text('{"my": "summary"}')
+    rc, _, err = _cli(["demo", "--out", out, "--size", "400"], capsys)
+    _one_line_error(rc, err, "it is not a summary geonav demo wrote")
+    assert sorted(p.name for p in out.iterdir()) == ["summary.json"]
