@@ -762,3 +762,17 @@ def test_the_demo_never_replaces_files_it_did_not_write(tmp_path, capsys):
     rc, _, err = _cli(["demo", "--out", out, "--size", "400"], capsys)
     _one_line_error(rc, err, "it is not a summary geonav demo wrote")
     assert sorted(p.name for p in out.iterdir()) == ["summary.json"]
+
+
+def test_synth_keep_sources_replaces_only_its_own_geotiffs(tmp_path, capsys):
+    keep = tmp_path / "keep"
+    keep.mkdir()
+    (keep / "residential-0-3857.tif").write_text("my own raster, same name")
+    argv = ["tiles", "synth", "--out", tmp_path / "S", "--size", "200", "--gsd", "1",
+            "--keep-sources", keep]
+    rc, _, err = _cli(argv, capsys)
+    _one_line_error(rc, err, "not a GeoTIFF that geonav tiles synth wrote")
+    assert (keep / "residential-0-3857.tif").read_text() == "my own raster, same name"
+    (keep / "residential-0-3857.tif").unlink()
+    assert _cli(argv, capsys)[0] == 0
+    assert _cli([*argv[:3], tmp_path / "S2", *argv[4:]], capsys)[0] == 0  # its own: replaced

@@ -545,12 +545,37 @@ def ingest_synthetic(
     if side_px < MIN_SCENE_PX:
         raise IngestError(f"a {size_m:g} m scene at {gsd_m:g} m/px is {side_px:.1f} px across; "
                           f"give --size of at least {MIN_SCENE_PX * gsd_m:g} m")
+    if keep_sources:  # files it would replace there must be its own earlier sources
+        for path in synth_source_paths(Path(keep_sources), kind, seed):
+            check_replaceable(path, "synthetic source", force=True,
+                              why_not=_not_a_synth_source, error=IngestError)
     with output_lock(out, "--out"):  # held through the synthesis: minutes for a big scene
         check_replaceable(out, "scene package", force=overwrite,
                           why_not=not_a_scene_package, error=IngestError)
         return _ingest_synthetic(kind, out=out, name=name, size_m=size_m, gsd_m=gsd_m,
                                  seed=seed, origin=origin, overwrite=overwrite,
                                  keep_sources=keep_sources, progress=progress)
+
+
+#: The TIFF Software tag of the GeoTIFFs that ``tiles synth`` writes.
+SYNTH_SOFTWARE = "geonav synth"
+
+
+def synth_source_paths(folder: Path, kind: str, seed: int) -> tuple[Path, Path]:
+    """(ortho, DSM) GeoTIFFs of a synthetic scene in ``folder``."""
+    return folder / f"{kind}-{seed}-3857.tif", folder / f"{kind}-{seed}-dsm.tif"
+
+
+def _not_a_synth_source(path: Path) -> str | None:
+    import rasterio
+    from rasterio.errors import RasterioError
+
+    try:
+        with rasterio.open(path) as src:
+            ours = src.tags().get("TIFFTAG_SOFTWARE") == SYNTH_SOFTWARE
+    except RasterioError:
+        ours = False
+    return None if ours else "it is not a GeoTIFF that geonav tiles synth wrote"
 
 
 def _ingest_synthetic(kind: str, *, out: str | os.PathLike[str], name: str | None,
@@ -583,14 +608,16 @@ def _ingest_synthetic(kind: str, *, out: str | os.PathLike[str], name: str | Non
         clean_stale_temps(tmp_root, "geonav-synth")
         folder = temp_dir(tmp_root, "geonav-synth")
     try:
-        ortho_path, dsm_path = folder / f"{kind}-{seed}-3857.tif", folder / f"{kind}-{seed}-dsm.tif"
+        ortho_path, dsm_path = synth_source_paths(folder, kind, seed)
         common = dict(driver="GTiff", width=w, height=h, crs="EPSG:3857", transform=transform,
                       tiled=True, compress="DEFLATE")
         with rasterio.open(ortho_path, "w", count=3, dtype="uint8", **common) as dst:
             dst.write(np.moveaxis(image.rgb, 2, 0))
+            dst.update_tags(TIFFTAG_SOFTWARE=SYNTH_SOFTWARE)
         with rasterio.open(dsm_path, "w", count=1, dtype="float32", nodata=float("nan"),
                            **common) as dst:
             dst.write((image.height_m + origin.alt_m).astype(np.float32), 1)
+            dst.update_tags(TIFFTAG_SOFTWARE=SYNTH_SOFTWARE)
         return ingest(
             [ortho_path], name=name or kind, out=out, dsm=dsm_path, ground_alt_m=origin.alt_m,
             gsd_m=gsd_m, origin=origin, overwrite=overwrite, progress=progress,
