@@ -20,12 +20,14 @@ import uuid
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any, TypeVar
 
 from geonav.errors import GeonavError, OutputBusy, OutputExists
 
 log = logging.getLogger(__name__)
 
 LOCK_TAG = "geonav-lock"
+F = TypeVar("F", bound=Callable[..., Any])
 
 _held: dict[str, int] = {}  # lock path -> nesting depth, in this process
 _held_guard = threading.Lock()
@@ -98,6 +100,25 @@ def _remove_empty(folders: list[Path]) -> None:
             d.rmdir()
         except OSError:
             return
+
+
+def holds_output_lock(param: str, what: str = "output") -> Callable[[F], F]:
+    """Decorator: the function runs under :func:`output_lock` of its argument ``param``."""
+    import functools
+    import inspect
+
+    def decorate(fn: F) -> F:
+        signature = inspect.signature(fn)
+
+        @functools.wraps(fn)
+        def locked(*args: Any, **kwargs: Any) -> Any:
+            target = signature.bind(*args, **kwargs).arguments[param]
+            with output_lock(target, what):
+                return fn(*args, **kwargs)
+
+        return locked  # type: ignore[return-value]
+
+    return decorate
 
 
 def _acquire(path: Path, target: Path, what: str) -> int | None:

@@ -776,3 +776,15 @@ def test_synth_keep_sources_replaces_only_its_own_geotiffs(tmp_path, capsys):
     (keep / "residential-0-3857.tif").unlink()
     assert _cli(argv, capsys)[0] == 0
     assert _cli([*argv[:3], tmp_path / "S2", *argv[4:]], capsys)[0] == 0  # its own: replaced
+
+
+def test_a_second_fetch_into_the_same_cache_is_refused(tmp_path):
+    from geonav.tiles.fetch import fetch_tiles
+
+    proc = _holding_lock(tmp_path / "cache")  # another fetch, its partial files in flight
+    try:
+        with pytest.raises(OutputBusy, match="being written by another geonav"):
+            fetch_tiles("http://127.0.0.1:9/{z}/{x}/{y}.png", (4.0, 51.0, 4.001, 51.001), 18,
+                        tmp_path / "cache", attribution="test")
+    finally:
+        proc.communicate("\n", timeout=30)

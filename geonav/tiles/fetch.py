@@ -49,6 +49,7 @@ from typing import Any
 
 from geonav import __version__
 from geonav.errors import TileError
+from geonav.outputs import holds_output_lock
 from geonav.tiles.xyz import (
     MAX_ZOOM,
     SIDECAR,
@@ -292,6 +293,7 @@ def verify_cache(cache: str | os.PathLike[str], zoom: int | None = None,
     return len(paths), removed
 
 
+@holds_output_lock("cache", "--out")  # two fetches into one cache: the second is refused
 def fetch_tiles(
     template: str,
     bbox_lonlat: Sequence[float],
