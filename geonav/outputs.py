@@ -34,8 +34,12 @@ _held_guard = threading.Lock()
 
 
 def lock_path(target: str | os.PathLike[str]) -> Path:
-    """The lock file of ``target``: ``.NAME.geonav-lock`` in the same folder."""
+    """The lock file of ``target``: ``.NAME.geonav-lock`` in the same folder, or
+    ``NAME/.geonav-lock`` for an existing folder whose parent only root may write."""
     full = Path(os.path.abspath(target))
+    if full.parent.is_dir() and not os.access(full.parent, os.W_OK) and full.is_dir() and \
+            os.access(full, os.W_OK):
+        return full / f".{LOCK_TAG}"
     return full.parent / f".{full.name}.{LOCK_TAG}"
 
 

@@ -788,3 +788,16 @@ def test_a_second_fetch_into_the_same_cache_is_refused(tmp_path):
                         tmp_path / "cache", attribution="test")
     finally:
         proc.communicate("\n", timeout=30)
+
+
+def test_a_folder_under_a_read_only_parent_is_locked_inside(tmp_path, monkeypatch):
+    import os
+
+    import geonav.outputs as outputs
+
+    run = tmp_path / "run"
+    run.mkdir()
+    monkeypatch.setattr(outputs.os, "access", lambda p, mode: Path(p) != tmp_path)
+    with outputs.output_lock(run) as lock:
+        assert lock == run / ".geonav-lock" and lock.exists()
+    assert list(run.iterdir()) == [] and os.listdir(tmp_path) == ["run"]
