@@ -179,7 +179,7 @@ def _release(path: Path, fd: int | None) -> None:
 # -- whose is this? ------------------------------------------------------------------------
 
 #: What a scene package folder holds when geonav wrote it.
-SCENE_FILES = frozenset({"scene.json", "ortho.tif", "dsm.tif", ".geonav-cache"})
+SCENE_FILES = frozenset({"scene.json", "ortho.tif", "dsm.tif", ".geonav-cache", f".{LOCK_TAG}"})
 
 
 def _json_object(path: Path, limit_bytes: int = 256 << 20) -> dict | None:
