@@ -115,6 +115,10 @@ def error_line(err: BaseException, args: argparse.Namespace | None = None) -> st
     return None
 
 
+#: Suffixes of the text inputs geonav reads (configs, task sets, manifests).
+TEXT_SUFFIXES = (".toml", ".json", ".jsonl", ".txt", ".csv", ".md")
+
+
 def _undecodable_input(args: argparse.Namespace | None) -> str | None:
     """The first file named in ``args`` that is not UTF-8 text (to name it in the error)."""
     import os
@@ -123,16 +127,14 @@ def _undecodable_input(args: argparse.Namespace | None) -> str | None:
         return None
     for value in vars(args).values():
         for item in value if isinstance(value, list | tuple) else [value]:
-            if not isinstance(item, str | os.PathLike) or not os.path.isfile(item):
-                continue
+            if not isinstance(item, str | os.PathLike) or not os.path.isfile(item) or \
+                    os.path.splitext(item)[1].lower() not in TEXT_SUFFIXES:
+                continue  # rasters, tile databases, checkpoints: binary on purpose
             try:
                 if os.path.getsize(item) > 64 << 20:
                     continue
                 with open(item, "rb") as f:
-                    head = f.read(4)
-                    if head.startswith((b"II*\x00", b"MM\x00*", b"\x89PNG", b"PK")):
-                        continue  # a raster or a checkpoint: binary on purpose
-                    (head + f.read()).decode("utf-8")
+                    f.read().decode("utf-8")
             except UnicodeDecodeError:
                 return str(item)
             except OSError:
