@@ -224,7 +224,7 @@ def test_a_task_the_view_blind_policy_solves_marks_the_verdict(tmp_path):
     assert table.solvable_without_view(s, s["comparisons"][0]) == (
         "task solvable without the view (view-blind 0.996; threshold 0.95 < 0.998)")
     row = _render_one(tmp_path, s)
-    assert "| 0.041 / 0.996 |" in row
+    assert "| 0.041 / 0.996 (view-blind > 0.3) |" in row
     assert ("| task solvable without the view (view-blind 0.996; threshold 0.95 < 0.998): "
             "reproduced |") in row
 
@@ -277,7 +277,14 @@ def test_the_mark_keeps_update_readme_idempotent(results):
     assert table.update_readme(root, readme) is True
     text = readme.read_text()
     assert text.count("task solvable without the view (view-blind") == 1
-    assert "| 0.040 / 0.996 |" in text
+    assert "| 0.040 / 0.996 (view-blind > 0.3) |" in text
     assert table.update_readme(root, readme) is False
     assert table.update_readme(root, readme, check=True) is False
     assert readme.read_text() == text
+
+
+def test_chance_cell_flags_tasks_that_do_not_need_the_view():
+    assert table.chance_cell({"random_walk_sr": 0.031, "blind_sr": 0.653}) == \
+        "0.031 / 0.653 (view-blind > 0.3)"
+    assert table.chance_cell({"random_walk_sr": 0.056, "blind_sr": 0.072}) == "0.056 / 0.072"
+    assert table.chance_cell({"random_walk_sr": 0.2, "blind_sr": 0.3}) == "0.200 / 0.300"

@@ -203,12 +203,21 @@ def view_blind_floor(random_walk_sr: float | None, blind_sr: float | None) -> fl
     return chance + (1.0 - chance) / 2.0
 
 
+VIEW_NEEDING_MAX_BLIND = 0.3
+"""The view-blind success above which a comparison's task is not a view-needing one
+(ALGORITHMS.md (f): tasks that are to show navigation by the view need <= 0.3)."""
+
+
 def chance_cell(comp: dict[str, Any]) -> str:
-    """The "chance: random walk / view-blind" cell, e.g. ``0.041 / 0.996``."""
+    """The "chance: random walk / view-blind" cell, e.g. ``0.041 / 0.996``, with
+    "(view-blind > 0.3)" where the task does not need the view by that standard."""
     rw, blind = _rate(comp.get("random_walk_sr")), _rate(comp.get("blind_sr"))
     if rw is None and blind is None:
         return "n/a"
-    return " / ".join("n/a" if r is None else f"{r:.3f}" for r in (rw, blind))
+    cell = " / ".join("n/a" if r is None else f"{r:.3f}" for r in (rw, blind))
+    if blind is not None and blind > VIEW_NEEDING_MAX_BLIND:
+        cell += f" (view-blind > {VIEW_NEEDING_MAX_BLIND:g})"
+    return cell
 
 
 def solvable_without_view(summary: dict[str, Any], comp: dict[str, Any]) -> str | None:
