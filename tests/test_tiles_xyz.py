@@ -264,3 +264,22 @@ def test_info_counts_meta_tasks_and_preview_draws_tasks(tmp_path, capsys):
     assert main(["tiles", "info", str(tmp_path / "big")]) == 0
     text = capsys.readouterr().out
     assert "4 disjoint 150 m tasks" in text and "DSM         0.0..35.0 m" in text
+
+
+def test_unverifiable_tms_says_where_each_reading_puts_the_scene(tmp_path, marker):
+    """A bare tile folder states no latitude: --tms cannot be checked, so a warning names
+    the centre it gives and the latitude the XYZ reading would give (issue 33)."""
+    lon, lat, mpx, tiles = marker
+    tms_folder = write_xyz(tmp_path / "tms", Z, tiles, mpx, tms=True)
+    with pytest.warns(GeonavWarning, match=r"--tms could not be checked") as rec:
+        read_xyz(tms_folder, tms=True)
+    import re
+
+    text = str(rec[0].message)
+    centre = float(re.search(r"centred at (-?[\d.]+),", text).group(1))
+    other = float(re.search(r"it would be at latitude (-?[\d.]+)\.", text).group(1))
+    assert abs(centre - lat) < 0.01       # the TMS reading: where the data really is
+    assert abs(other + lat) < 1.0         # the XYZ reading: the other hemisphere
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", GeonavWarning)
+        read_xyz(write_xyz(tmp_path / "xyz", Z, tiles, mpx), tms=False)   # no warning

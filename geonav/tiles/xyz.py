@@ -450,7 +450,27 @@ def read_xyz(
     for key in ("attribution", "url_template", "fetched_utc", "user_agent"):
         if sidecar.get(key):
             info[key] = sidecar[key]
+    if tms and not fetched and not _metadata_bounds(folder) and bbox_lonlat is None:
+        # nothing states where the data lies: the row order cannot be checked, so say where
+        # --tms puts it (read the other way it lands in the other hemisphere)
+        h, w = mask.shape
+        lon, lat = web_mercator_tms().lnglat(transform.c + transform.a * w / 2,
+                                             transform.f + transform.e * h / 2)
+        other = _other_hemisphere_lat(z, list(levels[z]))
+        warnings.warn(
+            f"{folder}: --tms could not be checked (no fetch record, metadata.json bounds or "
+            f"--bbox): read as TMS rows the scene is centred at {lat:.4f}, {lon:.4f} "
+            f"(lat, lon); read as XYZ it would be at latitude {other:.4f}. If the first is "
+            "wrong, drop --tms", GeonavWarning, stacklevel=2)
     return RasterSource(data, CRS.from_epsg(3857), transform, mask, info)
+
+
+def _other_hemisphere_lat(z: int, tiles: list[tuple[int, int]]) -> float:
+    """Centre latitude of ``tiles`` (stored (x, y) rows) read as XYZ rows."""
+    ys = [y for _, y in tiles]
+    y_mid = (min(ys) + max(ys) + 1) / 2  # rows counted from the north, fractional
+    return float(math.degrees(math.atan(math.sinh(math.pi * (1 - 2 * y_mid / 2 ** z)))))
+
 
 
 # -- row scheme checks -----------------------------------------------------------------------
