@@ -181,6 +181,12 @@ def test_link_loss_ends_in_landing(scene: Any, tmp_path: Path, caplog: Any) -> N
         assert result.end_action == "land" and result.disarmed
         assert not emu.armed and emu.landed
     assert any("link lost" in r.getMessage() for r in caplog.records)
+    # the second step was cut short by the link loss: one step flown, as the record says
+    # (the summary said "2 steps" with 1 done)
+    flown = [r for r in read_record(result.record_path) if r["kind"] == "step"]
+    assert result.steps == len(flown) == 1 and "; 1 steps;" in result.summary()
+    result_row = read_record(result.record_path)[-1]
+    assert result_row["kind"] == "result" and result_row["steps"] == 1
 
 
 @pytest.mark.parametrize("backend", ["pymavlink", "mavsdk"])

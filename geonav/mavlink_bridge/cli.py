@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import signal
-import sys
 import threading
 from typing import Any
 
@@ -193,10 +192,14 @@ def run_fly(args: argparse.Namespace) -> int:
         on_obstacle=args.on_obstacle,
         takeover_airborne=args.takeover_airborne,
         timeouts=Timeouts(connect_s=args.connect_timeout),
+        plot=False,
     )
-    for note in result.notes:
-        print(f"geonav: warning: {note}", file=sys.stderr)
-    print(result.summary())
+    # The outcome first (its notes, an altitude clamp, were logged once as warnings when
+    # the plan was made); then the picture, which may take a while on a loaded machine.
+    print(result.summary(), flush=True)
+    png = result.draw_track()
+    if png is not None:
+        print(f"track {png}")
     return result.exit_code
 
 

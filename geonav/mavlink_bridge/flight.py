@@ -305,7 +305,8 @@ class FlightResult:
         end_action: ``land``, ``rtl``, or ``none`` (operator takeover / never armed).
         disarmed: the vehicle was disarmed at the end.
         record_path: ``flight.jsonl``.
-        png_path: ``track.png`` (None if plotting failed).
+        png_path: ``track.png`` (None if plotting failed, or before :meth:`draw_track` when
+            the flight was run with ``plot=False``).
         latencies_ms: frame -> setpoint latency per step.
         outcome: one of :data:`OUTCOMES` (``reached``, ``missed``, ``refused``,
             ``link_lost``, ``takeover``, ``safety_stop``, ``interrupted``).
@@ -329,6 +330,14 @@ class FlightResult:
     end_ok: bool = False
     signal_name: str | None = None
     notes: list[str] = field(default_factory=list)
+    _draw: Callable[[], Path | None] | None = field(default=None, repr=False, compare=False)
+
+    def draw_track(self) -> Path | None:
+        """Draw ``track.png`` of a flight run with ``plot=False`` (once; later calls return
+        the same path). None if plotting failed (logged)."""
+        if self._draw is not None:
+            self.png_path, self._draw = self._draw(), None
+        return self.png_path
 
     @property
     def exit_code(self) -> int:
@@ -356,10 +365,8 @@ class FlightResult:
         # operator takeover: mode changed ..." (PX4 SIH and ArduCopter SITL).
         reason = _strip_outcome(self.outcome, self.reason)
         head = reason if reason.lower().startswith(words) else f"{words}: {reason}"
-        return (
-            f"{head}; {self.steps} steps; {end}; "
-            f"record {self.record_path}; track {self.png_path}"
-        )
+        track = "" if self._draw is not None else f"; track {self.png_path}"
+        return f"{head}; {self.steps} steps; {end}; record {self.record_path}{track}"
 
 
 def _exit_code(outcome: str, signal_name: str | None) -> int:
@@ -460,8 +467,12 @@ class FlightPlan:
     notes: list[str]
 
 
-def plan_flight(scene: Any, meta: dict[str, Any], cfg: FlightConfig) -> FlightPlan:
+def plan_flight(scene: Any, meta: dict[str, Any], cfg: FlightConfig,
+                warn: bool = True) -> FlightPlan:
     """Check the flight plan against the scene before any connection.
+
+    ``warn``: log the plan's notes (an altitude clamp) as warnings; a flight plans twice
+    (before connecting, and at its start), and says each note once.
 
     Raises:
         ConfigError: no altitude chosen for a multi-altitude policy, or a start
@@ -474,7 +485,8 @@ def plan_flight(scene: Any, meta: dict[str, Any], cfg: FlightConfig) -> FlightPl
     alt_m = resolve_alt(meta, cfg.alt_m)
     if alt_m > cfg.max_alt_m:
         note = f"altitude {alt_m:g} m clamped to {cfg.max_alt_m:g} m (--max-alt)"
-        log.warning("%s", note)
+        if warn:
+            log.warning("%s", note)
         notes.append(note)
         alt_m = cfg.max_alt_m
     step_m = float(cfg.step_m if cfg.step_m is not None else meta["step_m"])
@@ -506,6 +518,9 @@ def run_flight(
     out_dir: str | Path,
     progress: Progress | None = None,
     frames: FrameSource | None = None,
+    *,
+    plot: bool = True,
+    warn: bool = True,
 ) -> FlightResult:
     """Fly ``policy`` on ``vehicle`` over ``scene`` (a :class:`geonav.scene.Scene`).
 
@@ -513,11 +528,21 @@ def run_flight(
     reported in the result (``outcome`` and ``exit_code``). SIGINT, SIGTERM and
     SIGHUP (when called from the main thread) end the flight like Ctrl-C.
 
+    Args:
+        plot: draw ``track.png`` before returning; False returns as soon as the flight
+            has ended and its record is written (the result's :meth:`FlightResult.draw_track`
+            draws it), so a command can say the outcome first.
+        warn: log the plan's notes (an altitude clamp) as warnings (:func:`fly` has).
+
     Raises:
         ConfigError: the plan is invalid (checked before connecting).
     """
     with stop_signals() as sigs:
-        return _run_flight(vehicle, scene, policy, cfg, out_dir, progress, frames, sigs)
+        result = _run_flight(vehicle, scene, policy, cfg, out_dir, progress, frames, sigs,
+                             warn)
+    if plot:
+        result.draw_track()
+    return result
 
 
 def _run_flight(
@@ -529,10 +554,11 @@ def _run_flight(
     progress: Progress | None,
     frames: FrameSource | None,
     sigs: _StopSignals,
+    warn: bool = True,
 ) -> FlightResult:
     from geonav.camera import Camera, WarpRenderer
 
-    plan = plan_flight(scene, policy.meta, cfg)
+    plan = plan_flight(scene, policy.meta, cfg, warn=warn)
     t = cfg.timeouts
     meta = policy.meta
     alt_m, step_m, lattice = plan.alt_m, plan.step_m, plan.lattice
@@ -785,13 +811,14 @@ def _run_flight(
             action = int(policy.act(image, target_img))
             pump.tick()
             pump.raise_if_fault()
-            steps += 1
-            report("steps", steps / cfg.max_steps)
+            # A step counts once it is done and recorded: one cut short by a link loss or
+            # an error is not "flown" (the summary said "3 steps" with 2 done).
+            n = steps + 1
             if action not in ACTION_STEPS:
                 raise FlightError(f"policy returned action {action}; expected 0..3")
             nxt = planner.next_target(previous, action, step_m)
             nxt_cell = lattice.cell_of(nxt)
-            base = dict(step=steps, action=action, action_name=ACTION_NAMES[action])
+            base = dict(step=n, action=action, action_name=ACTION_NAMES[action])
             if not lattice.contains(nxt_cell):
                 # As in the environment: a move out of the region leaves the agent in place.
                 rec.write(
@@ -801,6 +828,8 @@ def _run_flight(
                     blocked=True,
                     events=["move out of the lattice: stayed"],
                 )
+                steps = n
+                report("steps", steps / cfg.max_steps)
                 continue
             if plan.blocked[nxt_cell]:
                 text = (
@@ -815,6 +844,7 @@ def _run_flight(
                         blocked=True,
                         events=[f"{text}: flight ended (--on-obstacle end)"],
                     )
+                    steps = n  # the step is done: it ended the flight where it stands
                     raise SafetyViolation(f"{text}; --on-obstacle end")
                 rec.write(
                     "step",
@@ -823,6 +853,8 @@ def _run_flight(
                     blocked=True,
                     events=[f"{text}: refused, kept position (--on-obstacle stay)"],
                 )
+                steps = n
+                report("steps", steps / cfg.max_steps)
                 log.warning("%s: move refused, vehicle keeps its position", text)
                 continue
             ned = planner.to_ned(nxt)
@@ -837,6 +869,7 @@ def _run_flight(
                     refused_target=(nxt.x_m, nxt.y_m),
                     events=[f"geofence: {err}"],
                 )
+                steps = n  # recorded: it ended the flight where it stands
                 raise
             latency_ms = (time.perf_counter() - t_frame) * 1000.0
             latencies.append(latency_ms)
@@ -856,6 +889,8 @@ def _run_flight(
                 latency_ms=round(latency_ms, 3),
                 events=[],
             )
+            steps = n
+            report("steps", steps / cfg.max_steps)
     except FlightInterrupted as err:
         reason = f"interrupted by {err.args[0]}"
         outcome = "interrupted"
@@ -907,11 +942,6 @@ def _run_flight(
         signal_name = signal.Signals(sigs.received).name
         if outcome != "interrupted":
             rec.event(f"{signal_name} received while ending the flight")
-    png = None
-    try:
-        png = rec.plot(scene, lattice, start_xy, target_xy, fence)
-    except (OSError, ValueError) as err:
-        log.warning("track plot failed: %s", err)
     rec.write(
         "result",
         success=success,
@@ -932,6 +962,16 @@ def _run_flight(
     except Exception as err:  # noqa: BLE001 - closing never ends in a traceback
         log.debug("closing vehicle: %s", err)
     report("done", 1.0)
+
+    def draw() -> Path | None:
+        # After the result is recorded and returned: drawing waits for nothing the
+        # flight decides (matplotlib on a loaded machine took 30-70 s).
+        try:
+            return rec.plot(scene, lattice, start_xy, target_xy, fence)
+        except (OSError, ValueError) as err:
+            log.warning("track plot failed: %s", err)
+            return None
+
     return FlightResult(
         success,
         reason,
@@ -941,12 +981,13 @@ def _run_flight(
         end_action,
         disarmed,
         rec.path,
-        png,
+        None,
         latencies,
         outcome=outcome,
         end_ok=end_ok,
         signal_name=signal_name if outcome == "interrupted" else None,
         notes=notes,
+        _draw=draw,
     )
 
 
@@ -1098,6 +1139,7 @@ def fly(
     out_dir: str | Path = "flight",
     emulator_config: Any = None,
     progress: Progress | None = None,
+    plot: bool = True,
     **config: Any,
 ) -> FlightResult:
     """Fly a checkpoint (or a Policy) on a scene; with ``dry_run`` against an in-process emulator.
@@ -1123,6 +1165,8 @@ def fly(
         out_dir: folder for the flight record.
         emulator_config: an EmulatorConfig to use for ``dry_run`` (home is set from the scene).
         progress: callback (phase, fraction).
+        plot: draw ``track.png`` before returning (False: the result's
+            :meth:`FlightResult.draw_track` draws it, so the outcome can be said first).
         **config: further :class:`FlightConfig` fields.
 
     Raises:
@@ -1190,7 +1234,7 @@ def fly(
         raise ConfigError("no connection: give --connect URL or --dry-run")
     try:
         vehicle = open_vehicle(connect, backend)
-        return run_flight(vehicle, scene, pol, cfg, out_dir, progress)
+        return run_flight(vehicle, scene, pol, cfg, out_dir, progress, plot=plot, warn=False)
     finally:
         if emu is not None:
             emu.stop()

@@ -55,15 +55,23 @@ _log_routed = False
 
 
 class MavsdkLogForwarder:
-    """MAVSDK's C++ log lines into the ``mavsdk`` Python logger, repeats folded.
+    """MAVSDK's C++ log lines into the ``mavsdk`` Python logger, one level down and
+    repeats folded.
+
+    geonav says in its own words everything that refuses or ends a flight (a
+    timeout, a lost link: one line and the exit code), so MAVSDK's own lines are
+    the diagnosis behind it, not a second report: its warnings and errors go out
+    at INFO (``geonav -v``; "Callback took more than 1 second" on a loaded
+    machine, "Sending message failed" after a link loss reached the console),
+    its info and debug lines at DEBUG (``-vv``). The recent warnings and errors
+    are kept (:attr:`problems`) for geonav's own messages to quote.
 
     A link that is down makes MAVSDK log the same ERROR once or twice a second
     (``Connect error: Connection refused`` while geonav waits for the autopilot,
     ``Sending message failed`` after it died: about 100 lines in 17 s on
-    ArduCopter SITL), while geonav reports the outcome itself in one line. So a
-    message is logged at its own level the first time, and again at most once
-    per ``window_s`` with the number of repeats folded into it; every repeat in
-    between still goes out at DEBUG (``geonav -vv``).
+    ArduCopter SITL). So a message is logged at its level the first time, and
+    again at most once per ``window_s`` with the number of repeats folded into
+    it; every repeat in between still goes out at DEBUG (``geonav -vv``).
 
     Args:
         logger: where the lines go (``mavsdk``).
@@ -72,7 +80,7 @@ class MavsdkLogForwarder:
     """
 
     #: MAVSDK ``LogLevel`` values (DEBUG 0, INFO 1, WARN 2, ERROR 3) -> logging levels.
-    LEVELS = {0: logging.DEBUG, 1: logging.INFO, 2: logging.WARNING, 3: logging.ERROR}
+    LEVELS = {0: logging.DEBUG, 1: logging.DEBUG, 2: logging.INFO, 3: logging.INFO}
 
     def __init__(
         self,
@@ -84,12 +92,16 @@ class MavsdkLogForwarder:
         self._lock = threading.Lock()
         # message -> [time it was last logged at its own level, repeats since then]
         self._seen: dict[str, list[float]] = {}
+        self.problems: collections.deque[tuple[float, str]] = collections.deque(maxlen=64)
+        """(clock time, message) of MAVSDK's recent warnings and errors, oldest first."""
 
     def __call__(self, level: Any, message: str, file: str | None, line: int) -> bool:
         """MAVSDK's callback (called on MAVSDK's threads); True: MAVSDK prints nothing."""
         try:
-            py_level = self.LEVELS.get(int(level), logging.INFO)
+            py_level = self.LEVELS.get(int(level), logging.DEBUG)
             now = self.clock()
+            if int(level) >= 2:
+                self.problems.append((now, message))
             with self._lock:
                 seen = self._seen.get(message)
                 if seen is not None and now - seen[0] < self.window_s:
@@ -128,8 +140,28 @@ def route_mavsdk_log() -> None:
         from mavsdk.logging import log_subscribe
     except ImportError:
         return
-    log_subscribe(MavsdkLogForwarder())
+    log_subscribe(FORWARDER)
     _log_routed = True
+
+
+FORWARDER = MavsdkLogForwarder()
+"""The process's forwarder (MAVSDK takes one log callback)."""
+
+
+def mavsdk_said(since: float, within_s: float = 30.0) -> str:
+    """'; MAVSDK: <the first two distinct warnings or errors it logged>' in the
+    ``within_s`` after ``since`` (clock seconds), for geonav's own messages (the first is
+    usually the cause: 'Connect error: Connection refused'); '' when there were none."""
+    said: list[str] = []
+    for t, message in list(FORWARDER.problems):
+        if since <= t <= since + within_s + 5.0 and message not in said:
+            said.append(message)
+    return f"; MAVSDK: {'; '.join(said[:2])}" if said else ""
+
+
+EXECUTOR_DRAIN_S = 10.0
+"""On close, how long MAVSDK's blocking calls still running get to return (its commands
+time out within a few seconds) before MAVSDK is destroyed."""
 
 
 class MavsdkVehicle:
@@ -202,6 +234,7 @@ class MavsdkVehicle:
             ) from err
         route_mavsdk_log()
         self._thread.start()
+        t_start = time.monotonic()
 
         async def setup() -> None:
             self._mav = Mavsdk(
@@ -217,6 +250,7 @@ class MavsdkVehicle:
                     raise FlightTimeout(
                         f"no autopilot on {self.conn.mavsdk()!r} within {timeout_s:.0f} s "
                         "(MAVSDK first_autopilot); check the connection URL"
+                        + mavsdk_said(t_start, timeout_s)
                     )
                 sysid = await system.get_system_id()
                 if self._want_sysid is None or sysid == self._want_sysid:
@@ -319,11 +353,21 @@ class MavsdkVehicle:
                 for task in self._tasks:
                     task.cancel()
                 await asyncio.gather(*self._tasks, return_exceptions=True)
+                # MAVSDK's asyncio plugins run its blocking calls in the loop's executor. One
+                # still waiting (a LAND retried on a dead link) never returned once MAVSDK
+                # was destroyed, and Python joins executor threads at exit: the command
+                # hung after its result line. MAVSDK times its commands out within seconds.
+                try:
+                    await asyncio.wait_for(self._loop.shutdown_default_executor(),
+                                           EXECUTOR_DRAIN_S)
+                except asyncio.TimeoutError:
+                    log.warning("MAVSDK shutdown: a MAVSDK call still blocks after %.0f s",
+                                EXECUTOR_DRAIN_S)
                 if self._mav is not None:
                     self._mav.destroy()
 
             try:
-                self._run(shutdown(), 5.0, "shutdown")
+                self._run(shutdown(), EXECUTOR_DRAIN_S + 5.0, "shutdown")
             except Exception as err:  # noqa: BLE001 - close never raises
                 log.warning("MAVSDK shutdown: %s", err)
             try:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import time
 from pathlib import Path
 from typing import Any
@@ -90,10 +91,11 @@ class FlightRecorder:
         matplotlib.use("Agg", force=False)
         import matplotlib.pyplot as plt
 
-        xmin, ymin, xmax, ymax = scene.bounds_m
-        fig, ax = plt.subplots(figsize=(7, 7), dpi=100)
-        ax.imshow(scene.rgb, extent=(xmin, xmax, ymin, ymax), origin="upper")
         view = _view_box(self, scene.bounds_m, lattice, start, target)
+        fig, ax = plt.subplots(figsize=(7, 7), dpi=100)
+        backdrop = _backdrop(scene, view)
+        if backdrop is not None:
+            ax.imshow(backdrop[0], extent=backdrop[1], origin="upper")
         if lattice is not None:
             lx0, ly0, _, _ = lattice.region_m
             nx, ny = lattice.shape
@@ -156,6 +158,24 @@ class FlightRecorder:
         fig.savefig(png, bbox_inches="tight")
         plt.close(fig)
         return png
+
+
+def _backdrop(scene: Any, view: tuple[float, float, float, float], max_px: int = 1400
+              ) -> tuple[np.ndarray, tuple[float, float, float, float]] | None:
+    """The scene image under ``view`` (scene metres), every k-th pixel so that its longer
+    side is at most ``max_px``, and its extent (xmin, xmax, ymin, ymax); None when the view
+    misses the scene. The plot showed the whole ortho before: matplotlib resampled a 2.5 km
+    scene at 0.25 m (300 MB) for a 700 px picture, 30-70 s on a loaded machine."""
+    rs, cs = scene.window(view)
+    if rs.stop <= rs.start or cs.stop <= cs.start:
+        return None
+    k = max(1, math.ceil(max(rs.stop - rs.start, cs.stop - cs.start) / max_px))
+    img = np.asarray(scene.rgb[rs.start:rs.stop:k, cs.start:cs.stop:k])
+    x0, y1 = scene.transform.c, scene.transform.f  # the north-west corner
+    g = scene.gsd_m
+    extent = (x0 + cs.start * g, x0 + (cs.start + img.shape[1] * k) * g,
+              y1 - (rs.start + img.shape[0] * k) * g, y1 - rs.start * g)
+    return img, extent
 
 
 def _view_box(
