@@ -159,6 +159,28 @@ def test_step_budget_running_env_steps_and_tensorboard(scene_files, tmp_path, ca
     assert max(e.step for e in acc.Scalars("rollout/ep_len_mean")) <= steps[-1]
 
 
+def test_a_refused_train_leaves_no_tensorboard_run(scene_files, tmp_path):
+    """Issue 34: the event file is made when training starts, in SB3's run sub-folder; a
+    train refused before that (here a missing --resume checkpoint) leaves none."""
+    pytest.importorskip("tensorboard", reason="the tensorboard extra is not installed")
+    from geonav.errors import GeonavError
+
+    scene, tasks = scene_files
+    tb = tmp_path / "tb"
+    args = _parse(["train", "--algo", "ppo", "--scene", str(scene), "--tasks", str(tasks),
+                   "--out", str(tmp_path / "run"), "--obs-size", "32", "--encoder", "random",
+                   "--no-progress", "--episodes", "4", "--tensorboard", str(tb),
+                   "--resume", str(tmp_path / "missing.pt")])
+    with pytest.raises((GeonavError, OSError)):
+        args.handler(args)
+    assert not list(tb.rglob("events.out.tfevents*"))
+    args = _parse(["train", "--algo", "ppo", "--scene", str(scene), "--tasks", str(tasks),
+                   "--out", str(tmp_path / "run2"), "--obs-size", "32", "--encoder", "random",
+                   "--no-progress", "--episodes", "4", "--tensorboard", str(tb)])
+    assert args.handler(args) == 0
+    assert [p.parent.name for p in tb.rglob("events.out.tfevents*")] == ["PPO_1"]
+
+
 def test_progress_is_lines_when_not_a_terminal(scene_files, tmp_path, capsys, monkeypatch):
     """Issue 15: a redirected run prints progress lines (no carriage returns)."""
     monkeypatch.setenv("GEONAV_PROGRESS_S", "0")

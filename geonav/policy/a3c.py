@@ -569,7 +569,9 @@ class A3CTrainer:
             cb.on_train_start({"episodes": self.cfg.episodes, "start_episode": self.start_episode,
                                "workers": self.cfg.workers, "out_dir": self.out_dir,
                                "total_steps": self.cfg.total_steps,
-                               "start_env_steps": self.total_env_steps(result)})
+                               "start_env_steps": self.total_env_steps(result),
+                               "algorithm": self.algorithm,
+                               "reports_updates": self.reports_updates})
         return cbs, result
 
     def finish_training(self, cbs: list[Callback], result: TrainResult) -> None:
@@ -593,6 +595,9 @@ class A3CTrainer:
             if metrics.exists():
                 plot_learning_curve(metrics, self.out_dir / "learning_curve.png")
 
+    reports_updates = False
+    """Whether :meth:`train` calls the callbacks' ``on_update`` (the batched engine does;
+    here the updates happen in the workers, and each episode's record carries its losses)."""
     _final_rng: dict[str, Any] | None = None
     _t_start: float = 0.0
     _elapsed_base: float = 0.0

@@ -30,11 +30,17 @@ class Callback:
     """
 
     def on_train_start(self, info: dict[str, Any]) -> None:
-        """``info``: total episodes, start episode, workers, run folder."""
+        """``info``: total episodes, start episode, workers, run folder, step budget, env
+        steps so far, algorithm."""
 
     def on_episode(self, record: dict[str, Any]) -> bool | None:
         """One finished episode (see ``METRIC_FIELDS``)."""
         return None
+
+    def on_update(self, stats: dict[str, Any]) -> None:
+        """One optimiser update of the batched engine: its ``policy_loss``, ``value_loss``,
+        ``entropy``, the update count ``n_updates`` and the run's ``env_steps`` so far
+        (the async engine's updates happen in its workers and are not reported)."""
 
     def on_eval(self, row: dict[str, Any]) -> None:
         """A periodic greedy + sampled evaluation (``geonav.policy.evaluation.EVAL_FIELDS``)."""
@@ -83,28 +89,44 @@ class TensorBoardMetrics(Callback):
 
     So that a geonav run and an SB3 run on the same task overlay in one TensorBoard:
 
+    * each run in its own sub-folder ``log_dir/<ALGO>_<N>`` (SB3's ``<tb_log_name>_<N>``:
+      the next N for a new run, the latest for a resumed one), so two runs given the same
+      folder are two runs, not one whose step axis jumps back;
     * ``rollout/ep_rew_mean``, ``rollout/ep_len_mean``, ``rollout/success_rate``: means
       over the last ``window`` episodes (SB3's ``stats_window_size``, 100), plus geonav's
       ``rollout/spl_mean`` and ``rollout/collisions_mean``;
-    * ``train/policy_loss``, ``train/value_loss``, ``train/entropy_loss`` (minus the
-      mean entropy, SB3's sign) of each episode's update;
+    * ``train/value_loss``, ``train/entropy_loss`` (minus the mean entropy, SB3's sign)
+      and the policy term as the SB3 algorithm of the same kind names it:
+      ``train/policy_gradient_loss`` for PPO (SB3's PPO), ``train/policy_loss`` otherwise
+      (SB3's A2C), plus ``train/n_updates``; once per optimiser update (:meth:`on_update`,
+      the batched engine, as SB3 logs per update), else per episode (the async engine,
+      whose updates happen in its workers);
     * ``eval/success_rate`` (and geonav's ``eval/spl``, ``eval/sampled_*``) from
       :meth:`on_eval`, as SB3's ``EvalCallback`` names them;
     * ``time/episodes``: episodes so far.
 
     The x-axis is the running total of env steps: the record's ``env_steps`` when it is a
     running total (it includes earlier runs after a resume), else the sum of the episode
-    lengths this callback has seen. Needs the ``tensorboard`` extra.
+    lengths this callback has seen. The event file is made when training starts (a run
+    refused before that leaves none). Needs the ``tensorboard`` extra.
 
     Args:
-        log_dir: the folder for the event files.
+        log_dir: the folder of the runs' sub-folders.
         window: episodes in the rollout means.
+        name: the sub-folder's name before ``_N`` (default: the trainer's algorithm,
+            upper case: ``A3C``, ``PPO``, ``META_ISAR``).
     """
 
-    def __init__(self, log_dir: str | os.PathLike[str], window: int = 100) -> None:
-        from torch.utils.tensorboard import SummaryWriter  # ImportError without tensorboard
+    def __init__(self, log_dir: str | os.PathLike[str], window: int = 100,
+                 name: str | None = None) -> None:
+        import torch.utils.tensorboard  # noqa: F401 - ImportError now, without tensorboard
 
-        self.writer = SummaryWriter(str(log_dir))
+        self.log_dir = Path(log_dir)
+        self.name = name
+        self.writer: Any = None
+        self.run_dir: Path | None = None
+        self.algorithm: str | None = None
+        self._per_update = False
         self.window = int(window)
         self.returns: deque[float] = deque(maxlen=window)
         self.lengths: deque[float] = deque(maxlen=window)
@@ -113,6 +135,40 @@ class TensorBoardMetrics(Callback):
         self.collisions: deque[float] = deque(maxlen=window)
         self.env_steps = 0
         self.episodes = 0
+
+    def on_train_start(self, info: dict[str, Any]) -> None:
+        # A curriculum passes one callback to every stage: they share the first's run.
+        if self.writer is None:
+            self._open(str(info.get("algorithm") or ""), int(info.get("start_episode") or 0) > 0)
+        self._per_update = bool(info.get("reports_updates")) or self._per_update
+
+    def _open(self, algorithm: str, resume: bool) -> Any:
+        from torch.utils.tensorboard import SummaryWriter
+
+        self.algorithm = algorithm or None
+        name = self.name or (algorithm or "geonav").upper().replace("-", "_")
+        self.run_dir = run_folder(self.log_dir, name, resume)
+        self.writer = SummaryWriter(str(self.run_dir))
+        return self.writer
+
+    def _w(self) -> Any:
+        return self.writer if self.writer is not None else self._open("", False)
+
+    def _train_tags(self, stats: dict[str, Any], x: int) -> None:
+        policy_tag = "train/policy_gradient_loss" if self.algorithm == "ppo" \
+            else "train/policy_loss"
+        for tag, key, sign in ((policy_tag, "policy_loss", 1.0),
+                               ("train/value_loss", "value_loss", 1.0),
+                               ("train/entropy_loss", "entropy", -1.0)):
+            if stats.get(key) is not None:
+                self._w().add_scalar(tag, sign * float(stats[key]), x)
+
+    def on_update(self, stats: dict[str, Any]) -> None:
+        self._per_update = True
+        x = max(int(stats.get("env_steps") or 0), self.env_steps)
+        self._train_tags(stats, x)
+        if stats.get("n_updates") is not None:
+            self._w().add_scalar("train/n_updates", int(stats["n_updates"]), x)
 
     def _step(self, record: dict[str, Any]) -> int:
         self.env_steps += int(record.get("length") or 0)
@@ -129,7 +185,7 @@ class TensorBoardMetrics(Callback):
                          (self.collisions, "collisions")):
             if record.get(key) is not None:
                 buf.append(float(record[key]))
-        add = self.writer.add_scalar
+        add = self._w().add_scalar
         for tag, buf in (("rollout/ep_rew_mean", self.returns),
                          ("rollout/ep_len_mean", self.lengths),
                          ("rollout/success_rate", self.successes),
@@ -137,11 +193,8 @@ class TensorBoardMetrics(Callback):
                          ("rollout/collisions_mean", self.collisions)):
             if buf:
                 add(tag, sum(buf) / len(buf), x)
-        for tag, key, sign in (("train/policy_loss", "policy_loss", 1.0),
-                               ("train/value_loss", "value_loss", 1.0),
-                               ("train/entropy_loss", "entropy", -1.0)):
-            if record.get(key) is not None:
-                add(tag, sign * float(record[key]), x)
+        if not self._per_update:  # the async engine: the losses its episode's records hold
+            self._train_tags(record, x)
         add("time/episodes", self.episodes, x)
 
     def on_eval(self, row: dict[str, Any]) -> None:
@@ -167,28 +220,45 @@ class TensorBoardMetrics(Callback):
                          ("eval/mean_ep_length", "mean_ep_length")):
             value = row.get(key)
             if value is not None and value == value:  # NaN: nothing to plot
-                self.writer.add_scalar(tag, float(value), x)
+                self._w().add_scalar(tag, float(value), x)
 
     def on_train_end(self, result: Any) -> None:
         self.close()
 
     def close(self) -> None:
-        self.writer.close()
+        if self.writer is not None:
+            self.writer.close()
 
 
-def tensorboard_callback(log_dir: str | os.PathLike[str], *,
-                         required: bool = False) -> Callback | None:
-    """A :class:`TensorBoardMetrics` writing to ``log_dir`` (for ``--tensorboard DIR``).
+def run_folder(log_dir: str | os.PathLike[str], name: str, resume: bool = False) -> Path:
+    """SB3's run sub-folder ``log_dir/<name>_<N>``: N one above the largest there (1 for
+    the first), or with ``resume`` the largest (a resumed run goes on in its folder; SB3's
+    ``reset_num_timesteps=False``)."""
+    import re
+
+    base = Path(log_dir)
+    pattern = re.compile(rf"^{re.escape(name)}_(\d+)$")
+    ids = [int(m.group(1)) for p in (base.iterdir() if base.is_dir() else ())
+           if p.is_dir() and (m := pattern.match(p.name))]
+    latest = max(ids, default=0)
+    return base / f"{name}_{latest if resume and latest else latest + 1}"
+
+
+def tensorboard_callback(log_dir: str | os.PathLike[str], *, required: bool = False,
+                         name: str | None = None) -> Callback | None:
+    """A :class:`TensorBoardMetrics` writing to a run sub-folder of ``log_dir`` (for
+    ``--tensorboard DIR``).
 
     TensorBoard logging is on only where a caller asks for it with a folder.
 
     Args:
-        log_dir: the event-file folder.
+        log_dir: the folder of the runs' sub-folders (``<ALGO>_<N>``).
+        name: the sub-folder's name before ``_N`` (default: the algorithm).
         required: raise :class:`MissingExtra` when tensorboard is not installed (what an
             explicit ``--tensorboard`` should do); otherwise log a warning and return None.
     """
     try:
-        return TensorBoardMetrics(log_dir)
+        return TensorBoardMetrics(log_dir, name=name)
     except ImportError as err:
         if required:
             raise MissingExtra("tensorboard", "tensorboard", "--tensorboard logging") from err

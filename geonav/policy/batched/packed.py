@@ -261,6 +261,7 @@ class PackedTrainer(BatchedTrainer):
                     m._final_rng = m.rng_snapshot()
                     m.finish_training(cbs, result)
             while not all(m.packed_done for m in self.members):  # type: ignore[attr-defined]
+                training = [not m.packed_done for m in self.members]  # type: ignore
                 finals, stats = self.update()
                 for f in finals:
                     i = f["slot"] // b
@@ -274,6 +275,10 @@ class PackedTrainer(BatchedTrainer):
                         m.packed_done = True  # type: ignore[attr-defined]
                         m._final_rng = m.rng_snapshot()
                         m.finish_training(cbs, result)
+                for i, (m, (cbs, result)) in enumerate(zip(self.members, begun, strict=True)):
+                    if training[i]:  # each member's own losses, once per update
+                        m.report_update(stats[i] if isinstance(stats, list) else stats, cbs,
+                                        result)
         finally:
             torch.set_num_threads(threads)
             for cbs, result in begun:

@@ -361,10 +361,30 @@ class BatchedTrainer(A3CTrainer):
                     if not self._on_record(self.record(f, stats), cbs, result,
                                            self.rng_snapshot):
                         go_on = False
+                self.report_update(stats, cbs, result)
                 self.after_update(before, cbs)
             self._final_rng = self.rng_snapshot()
         finally:
             torch.set_num_threads(threads)
+
+    n_updates: int = 0
+    """Optimiser updates of this call of :meth:`train` (SB3's ``train/n_updates``)."""
+
+    reports_updates = True
+    """This engine calls the callbacks' ``on_update`` once per update (its losses are
+    logged per update, as SB3 does)."""
+
+    def report_update(self, stats: Any, cbs: list[Callback], result: TrainResult) -> None:
+        """One update done: ``on_update`` of the callbacks with its loss figures, the update
+        count and the run's env steps so far (after the update's finished episodes)."""
+        self.n_updates += 1
+        if not isinstance(stats, dict):
+            return
+        row = {**stats, "n_updates": self.n_updates, "env_steps": self.total_env_steps(result)}
+        for cb in cbs:
+            hook = getattr(cb, "on_update", None)  # duck-typed callbacks too
+            if hook is not None:
+                hook(row)
 
     def after_update(self, before: int, cbs: list[Callback]) -> None:
         """Called after an update's records (``before``: episodes before it); meta-training
