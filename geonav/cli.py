@@ -15,7 +15,14 @@ import sys
 from collections.abc import Sequence
 
 from geonav import __version__
-from geonav.cliutil import GeonavParser, one_line_warnings, oserror_line
+from geonav.cliutil import (
+    GeonavParser,
+    apply_verbosity,
+    common_options,
+    needs_subcommand,
+    one_line_warnings,
+    oserror_line,
+)
 from geonav.errors import GeonavError
 
 #: Modules that provide ``add_parser(subparsers)``; missing ones are skipped.
@@ -33,10 +40,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser = GeonavParser(
         prog="geonav",
         description="Learn drone visual navigation from aerial imagery and fly it over MAVLink.",
+        parents=[common_options(root=True)],
     )
     parser.add_argument("--version", action="version", version=f"geonav {__version__}")
-    parser.add_argument("-v", "--verbose", action="count", default=0,
-                        help="more log output (-vv for debug)")
+    parser.set_defaults(handler=needs_subcommand(parser))
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in SUBCOMMAND_MODULES:
         try:
@@ -59,7 +66,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         parser = build_parser()
         args = parser.parse_args(argv)
-        level = logging.WARNING - 10 * min(args.verbose, 2)
+        level = apply_verbosity(args)
         logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
         one_line_warnings()
         handler = getattr(args, "handler", None)

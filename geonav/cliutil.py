@@ -17,9 +17,19 @@ from typing import Any, NoReturn
 
 from geonav.errors import ConfigError
 
+QUIET = False
+"""``geonav -q``: no progress at all and no warnings; results and errors only (set by
+:func:`apply_verbosity`)."""
 
-def progress_bar(desc: str) -> Callable[[str, float], None]:
-    """A progress callback (phase, fraction) drawn with tqdm on stderr."""
+
+def progress_bar(desc: str, disable: bool = False) -> Callable[[str, float], None]:
+    """A progress callback (phase, fraction): a tqdm bar on a terminal, else a line on
+    stderr every ~30 s (``GEONAV_PROGRESS_S``); nothing with ``disable``
+    (``--no-progress``) or ``geonav -q``."""
+    if disable or QUIET:
+        return lambda phase, fraction: None
+    if not is_terminal():
+        return _progress_lines(desc)
     from tqdm import tqdm
 
     bars: dict[str, tqdm] = {}
@@ -33,6 +43,22 @@ def progress_bar(desc: str) -> Callable[[str, float], None]:
         bar.refresh()
         if fraction >= 1.0:
             bar.close()
+
+    return update
+
+
+def _progress_lines(desc: str) -> Callable[[str, float], None]:
+    """:func:`progress_bar` for logs: a '<desc>: <phase> 42% (95 s)' line every ~30 s
+    (``GEONAV_PROGRESS_S``), none for a step shorter than that; no carriage returns."""
+    import time
+
+    lines = LineProgress()
+    t0 = time.monotonic()
+
+    def update(phase: str, fraction: float) -> None:
+        if lines.due():
+            LineProgress.write(f"{desc}: {phase} {100.0 * max(0.0, min(1.0, fraction)):.0f}% "
+                               f"({time.monotonic() - t0:.0f} s)")
 
     return update
 
@@ -129,6 +155,9 @@ class TqdmProgress:
 
         from geonav.policy.callbacks import Callback
 
+        if QUIET:  # geonav -q: the result line only
+            self.callback = Callback()
+            return
         if disable:
             self.callback = _line_callback(Callback, per_episode=False)
             return
@@ -216,15 +245,74 @@ _NEGATIVE_LIST = re.compile(r"^-\.?\d")
 class GeonavParser(argparse.ArgumentParser):
     """ArgumentParser whose errors are one line (exit 2) and whose values may be negative.
 
-    Subparsers inherit the class (argparse passes ``parser_class=type(self)``).
+    Subparsers inherit the class (argparse passes ``parser_class=type(self)``), and every
+    subcommand, at any depth, takes the options of :func:`common_options` (``-v``, ``-q``)
+    wherever they are written: ``geonav -v train ...`` and ``geonav train ... -v``.
     """
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self._negative_number_matcher = _NEGATIVE_LIST
+        self.register("action", "parsers", _SubParsers)
 
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+class _SubParsers(argparse._SubParsersAction):
+    """Subcommand parsers that share :func:`common_options` (one parent for all)."""
+
+    def add_parser(self, name: str, **kwargs: Any) -> Any:
+        kwargs["parents"] = [common_options(), *kwargs.get("parents", [])]
+        return super().add_parser(name, **kwargs)
+
+
+_COMMON: argparse.ArgumentParser | None = None
+
+
+def common_options(root: bool = False) -> argparse.ArgumentParser:
+    """The options every ``geonav`` command takes: ``-v/--verbose`` (more log output,
+    ``-vv`` debug, and the traceback of an error) and ``-q/--quiet`` (errors and results
+    only: no warnings, no progress). One parent parser for all the subcommands; with
+    ``root`` a fresh one whose defaults are set (the root parser's: a subcommand's copy
+    has no defaults, so ``geonav -v train`` keeps the root's value)."""
+    global _COMMON
+    if _COMMON is not None and not root:
+        return _COMMON
+    p = argparse.ArgumentParser(add_help=False)
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("-v", "--verbose", action="count",
+                   default=0 if root else argparse.SUPPRESS,
+                   help="more log output (-vv for debug; the traceback of an error)")
+    g.add_argument("-q", "--quiet", action="store_true",
+                   default=False if root else argparse.SUPPRESS,
+                   help="errors and results only: no warnings, no progress")
+    if not root:
+        _COMMON = p
+    return p
+
+
+def apply_verbosity(args: argparse.Namespace) -> int:
+    """The logging level ``-v``/``-q`` ask for; records ``-q`` in :data:`QUIET` (progress
+    and warnings off)."""
+    import logging
+
+    global QUIET
+    QUIET = bool(getattr(args, "quiet", False))
+    if QUIET:
+        return logging.ERROR
+    return logging.WARNING - 10 * min(int(getattr(args, "verbose", 0) or 0), 2)
+
+
+def needs_subcommand(parser: argparse.ArgumentParser) -> Callable[[argparse.Namespace], int]:
+    """The handler of a command group given no subcommand (``geonav``, ``geonav tiles``):
+    its help on stderr and exit status 2, as a missing argument."""
+    def handler(args: argparse.Namespace) -> int:
+        parser.print_help(sys.stderr)
+        print(f"{parser.prog}: error: give a command (see above)", file=sys.stderr)
+        return 2
+
+    return handler
 
 
 def _number(text: str, what: str, kind: type) -> Any:
@@ -356,7 +444,7 @@ def one_line_warnings() -> None:
         print(f"warning: {text}", file=file or sys.stderr)
 
     warnings.showwarning = show
-    warnings.simplefilter("default")
+    warnings.simplefilter("ignore" if QUIET else "default")  # geonav -q: errors only
     for cat in (DeprecationWarning, PendingDeprecationWarning, FutureWarning):
         warnings.filterwarnings("ignore", category=cat)
 

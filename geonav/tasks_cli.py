@@ -4,7 +4,13 @@ from __future__ import annotations
 
 import argparse
 
-from geonav.cliutil import positive_float, positive_floats, positive_int, seed_int
+from geonav.cliutil import (
+    needs_subcommand,
+    positive_float,
+    positive_floats,
+    positive_int,
+    seed_int,
+)
 
 
 def _fraction(text: str) -> float:
@@ -27,7 +33,7 @@ def _limit(text: str) -> float | None:
 def add_parser(sub: argparse._SubParsersAction) -> None:
     tasks = sub.add_parser("tasks", help="make navigation task sets")
     tsub = tasks.add_subparsers(dest="tasks_command", metavar="TASKS_COMMAND")
-    tasks.set_defaults(handler=lambda args: tasks.print_help() or 0)
+    tasks.set_defaults(handler=needs_subcommand(tasks))
     p = tsub.add_parser("make", help="meta-tasks (regions at 300 m) or whole-scene tasks")
     p.add_argument("scene", help="scene package folder")
     p.add_argument("--kind", choices=["meta", "scene"], default="meta",

@@ -13,11 +13,53 @@ from geonav.cli import main
 
 
 def test_help_lists_every_command(capsys):
-    assert main([]) == 0
-    out = capsys.readouterr().out
+    # no command is a usage error (exit 2, help on stderr), as a missing argument
+    assert main([]) == 2
+    err = capsys.readouterr().err
     for cmd in ("tiles", "tasks", "train", "eval", "meta-train", "curriculum", "experiment",
                 "fly", "demo"):
-        assert cmd in out, cmd
+        assert cmd in err, cmd
+    assert err.strip().endswith("geonav: error: give a command (see above)")
+    for group in ("tiles", "tasks", "experiment", "mavlink"):
+        assert main([group]) == 2, group
+        assert f"geonav {group}: error: give a command" in capsys.readouterr().err
+
+
+def test_verbose_and_quiet_anywhere_on_every_command(capsys):
+    """-v/-q come from one parent parser shared by every subcommand, at any depth, before
+    or after it (issue 34: -v worked only before the subcommand; there was no -q)."""
+    import argparse
+
+    from geonav.cli import build_parser
+    from geonav.cliutil import apply_verbosity
+
+    parser = build_parser()
+    train = ["train", "--scene", "s", "--tasks", "t", "--out", "o"]
+    for argv, verbose, quiet in ((train, 0, False), (["-v", *train], 1, False),
+                                 ([*train, "-v"], 1, False), ([*train, "-vv"], 2, False),
+                                 (["-vv", *train], 2, False), ([*train, "-q"], 0, True),
+                                 (["-q", "experiment", "report", "c.toml"], 0, True),
+                                 (["experiment", "report", "c.toml", "-v"], 1, False),
+                                 (["tiles", "info", "--verbose", "x"], 1, False),
+                                 (["mavlink", "emulate", "-q"], 0, True)):
+        args = parser.parse_args(argv)
+        assert (args.verbose, args.quiet) == (verbose, quiet), argv
+    assert apply_verbosity(parser.parse_args([*train, "-q"])) == 40  # logging.ERROR
+    assert apply_verbosity(parser.parse_args([*train, "-v"])) == 20  # logging.INFO
+    assert apply_verbosity(argparse.Namespace()) == 30  # a parser without them: WARNING
+    subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)][0]
+    for name, sub in subs.choices.items():
+        flags = {o for a in sub._actions for o in a.option_strings}
+        assert {"-v", "--verbose", "-q", "--quiet"} <= flags, name
+    for extra in ([], ["--param", "a.b=1"]):  # experiment run had no --no-progress
+        cmd = "sweep" if extra else "run"
+        args = parser.parse_args(["experiment", cmd, "c.toml", *extra, "--no-progress"])
+        assert args.no_progress, cmd
+    try:
+        parser.parse_args([*train, "-v", "-q"])
+    except SystemExit as err:
+        assert err.code == 2
+    assert "not allowed with argument" in capsys.readouterr().err
 
 
 def test_help_does_not_import_heavy_modules():

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from geonav.cliutil import nonneg_int, positive_int
+from geonav.cliutil import needs_subcommand, nonneg_int, positive_int
 
 
 def _seeds(text: str) -> tuple[int, ...]:
@@ -15,7 +15,7 @@ def _seeds(text: str) -> tuple[int, ...]:
 def add_parser(sub: argparse._SubParsersAction) -> None:
     exp = sub.add_parser("experiment", help="run transfer experiments from a TOML config")
     esub = exp.add_subparsers(dest="experiment_command", metavar="EXPERIMENT_COMMAND")
-    exp.set_defaults(handler=lambda args: exp.print_help() or 0)
+    exp.set_defaults(handler=needs_subcommand(exp))
     p = esub.add_parser("run", help="run or resume an experiment; writes runs/NAME/")
     p.add_argument("config", help="experiment TOML (see configs/)")
     p.add_argument("--out", default="runs", help="parent folder of the run (default runs/)")
@@ -25,6 +25,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--name", help="override the experiment name (run folder)")
     p.add_argument("--fly", choices=["auto", "yes", "no"], default="auto",
                    help="fly the result in the MAVLink emulator when the config has [flight]")
+    _progress_arg(p)
     p.set_defaults(handler=run)
     p = esub.add_parser("sweep", help="run a grid of config variants; writes "
                         "runs/NAME-sweep/ with one summary table")
@@ -36,6 +37,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--only", action="append", help="run only this part (repeatable)")
     _backend_args(p)
     p.add_argument("--seeds", type=_seeds, help="override the seeds of every variant, e.g. 0,1,2")
+    _progress_arg(p)
     p.set_defaults(handler=run_sweep)
     p = esub.add_parser("report", help="re-write report.md and plots of a run (--partial: "
                         "an interim report of one still going)")
@@ -56,6 +58,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
     add_arguments(p)
     p.set_defaults(handler=run_table)
+
+
+def _progress_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--no-progress", action="store_true",
+                   help="no progress bars or lines (unit failures and retries, and the "
+                        "result, are still printed)")
 
 
 def _backend_args(p: argparse.ArgumentParser) -> None:
@@ -107,9 +115,9 @@ def run(args: argparse.Namespace) -> int:
     from geonav.experiments.runner import run_experiment
 
     cfg = _with_backend(load_config(args.config, _overrides(args)), args)
-    on_event, overall = _bars(cfg.name)
+    on_event, overall = _bars(cfg.name, args.no_progress)
     summary = run_experiment(cfg, args.out, only=args.only, on_event=on_event,
-                             progress=progress_bar("inputs"))
+                             progress=progress_bar("inputs", args.no_progress))
     overall.close()
     root = Path(args.out) / cfg.name
     if summary.get("locked"):
@@ -138,14 +146,39 @@ def run_sweep(args: argparse.Namespace) -> int:
     from geonav.cliutil import progress_bar
     from geonav.experiments.sweep import run_sweep as sweep
 
-    on_event, overall = _bars("sweep")
+    on_event, overall = _bars("sweep", args.no_progress)
     record = sweep(args.config, args.param, args.out, overrides=_overrides(args),
-                   only=args.only, on_event=on_event, progress=progress_bar("inputs"),
+                   only=args.only, on_event=on_event,
+                   progress=progress_bar("inputs", args.no_progress),
                    configure=lambda cfg: _with_backend(cfg, args))
     overall.close()
     print(f"sweep: {Path(record['folder']) / 'sweep.md'}")
     print(record["table"])
     return 1 if any(r["failed_units"] for r in record["rows"]) else 0
+
+
+def _outcomes(name: str):
+    """No progress (``--no-progress``): only what the user must know, a unit that failed
+    or whose worker died."""
+    from geonav import cliutil
+    from geonav.cliutil import LineProgress
+    from geonav.experiments.runner import UnitEvent
+
+    class _Overall:
+        def close(self) -> None:
+            pass
+
+    def on_event(ev: UnitEvent) -> None:
+        if ev.unit is None or cliutil.QUIET:
+            return
+        key = f"{ev.run}:{ev.unit.key}" if ev.run and name == "sweep" else ev.unit.key
+        if ev.status == "failed":
+            LineProgress.write(f"{name}: unit {key} failed: {ev.message}")
+        elif ev.status == "retry":
+            LineProgress.write(f"{name}: unit {key}: worker died, retrying from its last "
+                               "checkpoint")
+
+    return on_event, _Overall()
 
 
 def _lines(name: str):
@@ -185,12 +218,15 @@ def _lines(name: str):
     return on_event, _Overall()
 
 
-def _bars(name: str):
+def _bars(name: str, disable: bool = False):
     from tqdm import tqdm
 
+    from geonav import cliutil
     from geonav.cliutil import is_terminal
     from geonav.experiments.runner import UnitEvent
 
+    if disable or cliutil.QUIET:
+        return _outcomes(name)
     if not is_terminal():
         return _lines(name)
 

@@ -17,6 +17,7 @@ from typing import Any
 from geonav.cliutil import (
     altitude_m,
     finite_float,
+    needs_subcommand,
     nonneg_float,
     positive_float,
     positive_int,
@@ -131,6 +132,7 @@ def add_parser(subparsers: Any) -> None:
         e = subparsers.add_parser(name, help="run the MAVLink vehicle emulator (tests, dry runs)")
         _emulator_args(e)
     m = subparsers.add_parser("mavlink", help="MAVLink tools")
+    m.set_defaults(handler=needs_subcommand(m))
     msub = m.add_subparsers(dest="mavlink_command", metavar="TOOL")
     _emulator_args(msub.add_parser("emulate", help="run the MAVLink vehicle emulator"))
 

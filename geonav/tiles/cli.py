@@ -11,6 +11,7 @@ from geonav.cliutil import (
     bbox_arg,
     finite_float,
     lonlat_arg,
+    needs_subcommand,
     nonneg_int,
     positive_float,
     positive_int,
@@ -36,7 +37,7 @@ parse_bbox = bbox_arg
 def add_parser(sub: argparse._SubParsersAction) -> None:
     tiles = sub.add_parser("tiles", help="ingest imagery into scene packages, inspect scenes")
     tsub = tiles.add_subparsers(dest="tiles_command", metavar="TILES_COMMAND")
-    tiles.set_defaults(handler=lambda args: tiles.print_help() or 0)
+    tiles.set_defaults(handler=needs_subcommand(tiles))
 
     p = tsub.add_parser("ingest", help="GeoTIFFs, XYZ tile folders, MBTiles -> scene package")
     p.add_argument("sources", nargs="+",
