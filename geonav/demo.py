@@ -35,8 +35,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def ensure_scene(out: Path, name: str, kind: str, seed: int, size_m: float, gsd_m: float,
-                 force: bool = False, progress=None):
-    """Open the scene package at ``out`` if it was made with these parameters, else make it."""
+                 force: bool = False, progress=None, needs=None):
+    """Open the scene package at ``out`` if it was made with these parameters, else make it
+    (``needs``: a :class:`geonav.tiles.ingest.CoverageNeeds`, what it will be flown at)."""
     from geonav.errors import SceneError
     from geonav.scene import Scene
     from geonav.tiles.ingest import ingest_synthetic
@@ -50,7 +51,7 @@ def ensure_scene(out: Path, name: str, kind: str, seed: int, size_m: float, gsd_
         except SceneError as err:
             log.warning("re-creating %s: %s", out, err)
     return ingest_synthetic(kind, out=out, name=name, size_m=size_m, gsd_m=gsd_m, seed=seed,
-                            overwrite=True, progress=progress)
+                            overwrite=True, progress=progress, needs=needs)
 
 
 def rollout(env, task_index: int, policy: str, seed: int) -> tuple[list, dict]:
@@ -103,9 +104,13 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     check_demo_outputs(out)
     summary = {}
+    from geonav.tiles.ingest import CoverageNeeds
+
     for name, kind, seed in SCENES:
+        # whole-scene tasks at 75/45/15 m on both; 150 m meta-tasks at 300 m on A only
+        needs = CoverageNeeds.paper() if name == "A" else CoverageNeeds(tasks=())
         scene = ensure_scene(out / "scenes" / name, name, kind, args.seed + seed, args.size,
-                             args.gsd, args.force, progress_bar(f"scene {name}"))
+                             args.gsd, args.force, progress_bar(f"scene {name}"), needs)
         scene_tasks = whole_scene_tasks(scene, (75.0, 45.0, 15.0), seed=args.seed + seed)
         scene_tasks.save(out / "tasks" / f"{name}-scene.json")
         sets = {"scene": scene_tasks}

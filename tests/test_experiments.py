@@ -654,3 +654,35 @@ def test_report_leaves_out_unreadable_units_and_says_so(tmp_path):
     report = (root / "report.md").read_text()
     assert "## Unreadable units" in report
     assert "| scratch | train | a3c | B_target | 150 | 1/2 (1 unreadable) |" in report
+
+
+def test_ingestion_warns_only_about_what_the_run_flies(tmp_path):
+    """configs/tiny.toml flies 45 m tasks at 75 m on 1 m/px scenes: no warning about the
+    paper's 15 m views or 150 m tasks at 300 m (every tiny run printed four); a config
+    that does fly 15 m views on that imagery is warned about them, and only them."""
+    import warnings
+
+    import tomllib
+
+    from geonav.errors import GeonavWarning
+    from geonav.experiments.runner import coverage_needs, prepare_inputs
+    from geonav.tiles.ingest import CoverageNeeds, check_coverage
+
+    raw = tomllib.loads((Path(__file__).resolve().parent.parent / "configs" /
+                         "tiny.toml").read_text())
+    cfg = parse_config(raw, "tiny.toml")
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always", GeonavWarning)
+        scenes, _ = prepare_inputs(cfg, tmp_path / "tiny")
+    assert not [w for w in seen if issubclass(w.category, GeonavWarning)], \
+        [str(w.message) for w in seen]
+    from geonav.scene import Scene
+
+    scene = Scene.open(scenes["A"])
+    assert len(check_coverage(scene)) == 2  # the paper's protocol, when nothing says more
+    low = coverage_needs(replace(cfg, tasks={"A_meta": replace(
+        cfg.tasks["A_meta"], kind="scene", alts_m=(75.0, 15.0))}), "A", ["A_meta"])
+    assert low == CoverageNeeds(views=((75.0, 32, 90.0), (15.0, 32, 90.0)), tasks=())
+    [blur] = check_coverage(scene, low)
+    assert "that 32 px views at 15 m need" in blur
+    assert coverage_needs(cfg, "B", ["A_meta"]) == CoverageNeeds((), ())  # not on B

@@ -134,7 +134,8 @@ def prepare_inputs(cfg: ExperimentConfig, root: Path,
         else:
             out = base / "scenes" / name(key, spec)
             ensure_scene(out, key, spec.synthetic or "residential", spec.seed, spec.size_m,
-                         spec.gsd_m, progress=progress)
+                         spec.gsd_m, progress=progress,
+                         needs=coverage_needs(cfg, key, task_keys))
             scenes[key] = str(out.resolve())
     tasks: dict[str, str] = {}
     for key, tspec in cfg.tasks.items():
@@ -158,6 +159,26 @@ def prepare_inputs(cfg: ExperimentConfig, root: Path,
     check_noise(cfg, {k: task_difficulty(scenes[cfg.tasks[k].scene], p)
                       for k, p in tasks.items()})
     return scenes, tasks
+
+
+def coverage_needs(cfg: ExperimentConfig, scene_key: str, task_keys: list[str]) -> Any:
+    """What the run flies scene ``scene_key`` at (its task sets among ``task_keys``), for
+    ingestion's warnings: only those views and regions, not the paper's 15 m views and
+    150 m tasks at 300 m."""
+    from geonav.tiles.ingest import CoverageNeeds
+
+    views: list[tuple[float, int, float]] = []
+    tasks: list[tuple[float, float, float]] = []
+    for key in task_keys:
+        t = cfg.tasks[key]
+        if t.scene != scene_key or t.path:
+            continue
+        alts = (t.alt_m,) if t.kind == "meta" else tuple(t.alts_m)
+        views += [(float(a), t.obs_size_px, t.fov_deg) for a in alts]
+        if t.kind == "meta":
+            tasks.append((float(t.size_m or 150.0), float(t.margin_alt_m or t.alt_m),
+                          t.fov_deg))
+    return CoverageNeeds(tuple(views), tuple(tasks))
 
 
 def task_difficulty(scene_path: str, tasks_path: str) -> dict[str, Any]:

@@ -59,6 +59,29 @@ META_TASK_SIZE_M = 150.0
 
 
 @dataclass(frozen=True)
+class CoverageNeeds:
+    """What a scene will be flown at, for ingestion's coverage warnings: a warning only
+    for what the run will use (a config with 30 m tasks of 45 m is not warned about the
+    paper's 15 m views or 150 m tasks at 300 m).
+
+    Attributes:
+        views: (altitude m, view side px, field of view deg) of every view the tasks use;
+            the imagery should be fine enough for the lowest one.
+        tasks: (task side m, altitude m of its view margin, fov deg) of every region task;
+            the scene should hold the region with that view around it.
+    """
+
+    views: tuple[tuple[float, int, float], ...] = ((MIN_ALT_M, 84, 90.0),)
+    tasks: tuple[tuple[float, float, float], ...] = ((META_TASK_SIZE_M, MAX_ALT_M, 90.0),)
+
+    @classmethod
+    def paper(cls) -> CoverageNeeds:
+        """The paper's protocol (the default when nothing says otherwise): 84 px views
+        down to 15 m, 150 m tasks with a 300 m view margin."""
+        return cls()
+
+
+@dataclass(frozen=True)
 class SceneGrid:
     """The target grid: local tmerc at ``origin``, north-up square pixels of ``gsd_m``."""
 
@@ -295,21 +318,30 @@ def heights_above_ground(dsm_abs: np.ndarray, ground_alt_m: float | None,
     return height, ground_ref
 
 
-def check_coverage(scene: Scene, *, obs_size_px: int = 84, fov_deg: float = 90.0) -> list[str]:
-    """Warnings for imagery too coarse for 15 m views or too small for 300 m views."""
+def check_coverage(scene: Scene, needs: CoverageNeeds | None = None) -> list[str]:
+    """Warnings for imagery too coarse for the lowest view ``needs`` names, or too small for
+    its largest task with its view margin (default: the paper's 15 m views and 150 m tasks
+    at 300 m)."""
+    needs = needs or CoverageNeeds.paper()
     messages = []
-    need_gsd = 2 * MIN_ALT_M * math.tan(math.radians(fov_deg) / 2) / obs_size_px
-    if scene.gsd_m > need_gsd * 1.001:
-        messages.append(
-            f"imagery at {scene.gsd_m:.3f} m/px is {scene.gsd_m / need_gsd:.2f}x coarser than "
-            f"the {need_gsd:.3f} m/px an {obs_size_px} px view at {MIN_ALT_M:.0f} m needs; "
-            "low-altitude views will be blurred")
-    need_m = 2 * MAX_ALT_M * math.tan(math.radians(fov_deg) / 2) + META_TASK_SIZE_M
-    side = min(scene.size_m)
-    if side < need_m:
-        messages.append(
-            f"the scene is {side:.0f} m across, {need_m - side:.0f} m short of the {need_m:.0f} m "
-            f"a {META_TASK_SIZE_M:.0f} m task needs with its {MAX_ALT_M:.0f} m view margin")
+    if needs.views:
+        alt, px, fov = min(needs.views, key=lambda v: 2 * v[0] * math.tan(
+            math.radians(v[2]) / 2) / v[1])
+        need_gsd = 2 * alt * math.tan(math.radians(fov) / 2) / px
+        if scene.gsd_m > need_gsd * 1.001:
+            messages.append(
+                f"imagery at {scene.gsd_m:.3f} m/px is {scene.gsd_m / need_gsd:.2f}x coarser "
+                f"than the {need_gsd:.3f} m/px that {px} px views at {alt:g} m need; "
+                "low-altitude views will be blurred")
+    if needs.tasks:
+        size, alt, fov = max(needs.tasks, key=lambda t: 2 * t[1] * math.tan(
+            math.radians(t[2]) / 2) + t[0])
+        need_m = 2 * alt * math.tan(math.radians(fov) / 2) + size
+        side = min(scene.size_m)
+        if side < need_m:
+            messages.append(
+                f"the scene is {side:.0f} m across, {need_m - side:.0f} m short of the "
+                f"{need_m:.0f} m a {size:g} m task needs with its {alt:g} m view margin")
     return messages
 
 
@@ -356,6 +388,7 @@ def ingest(
     compress: str = "JPEG",
     extra_manifest: dict[str, Any] | None = None,
     progress: Progress | None = None,
+    needs: CoverageNeeds | None = None,
     tms: bool = False,
     zoom: int | None = None,
     rgb_bands: Sequence[int] | None = None,
@@ -382,6 +415,8 @@ def ingest(
         compress: ortho compression, "JPEG" or "DEFLATE".
         extra_manifest: more provenance for ``scene.json`` (e.g. synthetic parameters).
         progress: callback (phase, fraction).
+        needs: what the scene will be flown at, for the coverage warnings (default: the
+            paper's protocol, :meth:`CoverageNeeds.paper`).
         tms: tile folders among ``sources`` are in TMS row order.
         zoom: the zoom level to read from tile folders / MBTiles (default: highest).
         rgb_bands: 1-based bands of GDAL rasters to use as R,G,B (default: colour
@@ -423,7 +458,7 @@ def ingest(
             gsd_m=gsd_m, origin=origin, bbox_lonlat=bbox_lonlat, attribution=attribution,
             overwrite=overwrite, compress=compress, extra_manifest=extra_manifest,
             progress=progress, tms=tms, zoom=zoom, rgb_bands=rgb_bands, dsm_units=dsm_units,
-            memory_budget_mb=memory_budget_mb)
+            memory_budget_mb=memory_budget_mb, needs=needs)
 
 
 def _ingest(
@@ -432,7 +467,7 @@ def _ingest(
     origin: LonLat | None, bbox_lonlat: tuple[float, float, float, float] | None,
     attribution: str, overwrite: bool, compress: str, extra_manifest: dict[str, Any] | None,
     progress: Progress | None, tms: bool, zoom: int | None, rgb_bands: Sequence[int] | None,
-    dsm_units: str | None, memory_budget_mb: float | None,
+    dsm_units: str | None, memory_budget_mb: float | None, needs: CoverageNeeds | None = None,
 ) -> Scene:
     """The body of :func:`ingest`, under the lock of ``out``."""
     rasters = [s if isinstance(s, RasterSource) else
@@ -487,7 +522,7 @@ def _ingest(
         **(extra_manifest or {}),
     )
     rotated = any(r.transform.b or r.transform.d for r in rasters)
-    for message in check_coverage(scene) + _mask_coverage(mask, bbox_lonlat, rotated):
+    for message in check_coverage(scene, needs) + _mask_coverage(mask, bbox_lonlat, rotated):
         warnings.warn(f"scene {name}: {message}", GeonavWarning, stacklevel=3)
     scene.save(out, overwrite=overwrite, compress=compress)
     if progress:
@@ -515,6 +550,7 @@ def ingest_synthetic(
     overwrite: bool = False,
     keep_sources: str | os.PathLike[str] | None = None,
     progress: Progress | None = None,
+    needs: CoverageNeeds | None = None,
 ) -> Scene:
     """Synthesise a scene, write it as real GeoTIFFs in EPSG:3857, and ingest those.
 
@@ -533,6 +569,8 @@ def ingest_synthetic(
         overwrite: replace an existing scene package (never any other folder).
         keep_sources: a folder to keep the two source GeoTIFFs in.
         progress: callback (phase, fraction).
+        needs: what the scene will be flown at, for the coverage warnings (default: the
+            paper's protocol).
     """
     check_writable_folder(Path(out))
     if not (0 < gsd_m <= MAX_GSD_M and math.isfinite(gsd_m)) or \
@@ -554,7 +592,7 @@ def ingest_synthetic(
                           why_not=not_a_scene_package, error=IngestError)
         return _ingest_synthetic(kind, out=out, name=name, size_m=size_m, gsd_m=gsd_m,
                                  seed=seed, origin=origin, overwrite=overwrite,
-                                 keep_sources=keep_sources, progress=progress)
+                                 keep_sources=keep_sources, progress=progress, needs=needs)
 
 
 #: The TIFF Software tag of the GeoTIFFs that ``tiles synth`` writes.
@@ -581,7 +619,7 @@ def _not_a_synth_source(path: Path) -> str | None:
 def _ingest_synthetic(kind: str, *, out: str | os.PathLike[str], name: str | None,
                       size_m: float, gsd_m: float, seed: int, origin: LonLat | None,
                       overwrite: bool, keep_sources: str | os.PathLike[str] | None,
-                      progress: Progress | None) -> Scene:
+                      progress: Progress | None, needs: CoverageNeeds | None = None) -> Scene:
     """The body of :func:`ingest_synthetic`, under the lock of ``out``."""
     import tempfile
 
@@ -620,7 +658,7 @@ def _ingest_synthetic(kind: str, *, out: str | os.PathLike[str], name: str | Non
             dst.update_tags(TIFFTAG_SOFTWARE=SYNTH_SOFTWARE)
         return ingest(
             [ortho_path], name=name or kind, out=out, dsm=dsm_path, ground_alt_m=origin.alt_m,
-            gsd_m=gsd_m, origin=origin, overwrite=overwrite, progress=progress,
+            gsd_m=gsd_m, origin=origin, overwrite=overwrite, progress=progress, needs=needs,
             attribution="synthetic scene generated by geonav (no third-party imagery)",
             extra_manifest=dict(synthetic=dict(kind=kind, seed=seed, size_m=size_m,
                                                gsd_m=gsd_m)),
