@@ -47,20 +47,59 @@ def progress_bar(desc: str, disable: bool = False) -> Callable[[str, float], Non
     return update
 
 
-def _progress_lines(desc: str) -> Callable[[str, float], None]:
+class _ProgressLines:
     """:func:`progress_bar` for logs: a '<desc>: <phase> 42% (95 s)' line every ~30 s
-    (``GEONAV_PROGRESS_S``), none for a step shorter than that; no carriage returns."""
-    import time
+    (``GEONAV_PROGRESS_S``) while a phase runs, none for a step shorter than that, no
+    carriage returns. A phase that blocks in one long call (a reprojection, the chance
+    figures of a task set) still gets its lines: a daemon thread writes them while the
+    latest phase is unfinished (fraction < 1)."""
 
-    lines = LineProgress()
-    t0 = time.monotonic()
+    def __init__(self, desc: str) -> None:
+        import threading
+        import time
 
-    def update(phase: str, fraction: float) -> None:
-        if lines.due():
-            LineProgress.write(f"{desc}: {phase} {100.0 * max(0.0, min(1.0, fraction)):.0f}% "
-                               f"({time.monotonic() - t0:.0f} s)")
+        self.desc = desc
+        self.lines = LineProgress()
+        self.t0 = time.monotonic()
+        self.phase: str | None = None
+        self.fraction = 0.0
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
 
-    return update
+    def __call__(self, phase: str, fraction: float) -> None:
+        import threading
+
+        with self._lock:
+            self.phase, self.fraction = phase, max(0.0, min(1.0, float(fraction)))
+        self._tick()
+        if self._thread is None and self.fraction < 1.0:
+            self._thread = threading.Thread(target=self._beat, name="geonav-progress",
+                                            daemon=True)
+            self._thread.start()
+
+    def _tick(self) -> None:
+        import time
+
+        with self._lock:
+            if self.phase is None or self.fraction >= 1.0 or not self.lines.due():
+                return
+            text = (f"{self.desc}: {self.phase} {100.0 * self.fraction:.0f}% "
+                    f"({time.monotonic() - self.t0:.0f} s)")
+        LineProgress.write(text)
+
+    def _beat(self) -> None:
+        step = min(1.0, max(0.05, self.lines.interval_s / 10.0))
+        while not self._stop.wait(step):
+            self._tick()
+
+    def close(self) -> None:
+        """No more lines (the command goes on with something else)."""
+        self._stop.set()
+
+
+def _progress_lines(desc: str) -> Callable[[str, float], None]:
+    return _ProgressLines(desc)
 
 
 def load_toml(path: str | None) -> dict[str, Any]:

@@ -26,7 +26,7 @@ import numbers
 import os
 import tempfile
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -479,6 +479,7 @@ def sample_meta_tasks(
     min_coverage: float = DEFAULT_MIN_COVERAGE,
     max_random_walk: float | None = None,
     max_blind: float | None = None,
+    progress: Callable[[str, float], None] | None = None,
 ) -> TaskSet:
     """Sample ``count`` meta-tasks: square regions of ``size_m`` at ``alt_m``.
 
@@ -496,7 +497,9 @@ def sample_meta_tasks(
     fixed diagonal bias reaches from every start, is refused, so the kept tasks need the
     view (ALGORITHMS.md (f); 0.3 is the default for a learning comparison). Targets are
     drawn uniformly over the free cells either way. Reproducible by ``seed``.
+    ``progress``: callback (phase, fraction), phase "meta-tasks" (tasks placed / count).
     """
+    report = progress or (lambda phase, fraction: None)
     camera = camera or Camera()
     _check_chance_limit(max_random_walk)
     _check_chance_limit(max_blind, "max_blind")
@@ -516,6 +519,7 @@ def sample_meta_tasks(
     tasks: list[NavTask] = []
     regions: list[Region] = []
     attempts = 0
+    report("meta-tasks", 0.0)
     while len(tasks) < count:
         attempts += 1
         if attempts > 200 * count:
@@ -548,6 +552,7 @@ def sample_meta_tasks(
             continue
         tasks.append(task)
         regions.append(region)
+        report("meta-tasks", len(tasks) / count)
     return TaskSet(scene.name, scene.scene_id, tasks, camera,
                    dict(sampler="meta", count=count, size_m=size_m, alt_m=alt_m, step_m=step_m,
                         seed=seed, margin_alt_m=margin_alt_m or alt_m,
@@ -569,6 +574,7 @@ def whole_scene_tasks(
     min_coverage: float = DEFAULT_MIN_COVERAGE,
     max_random_walk: float | None = None,
     max_blind: float | None = None,
+    progress: Callable[[str, float], None] | None = None,
 ) -> TaskSet:
     """One task per altitude on the same lattice with the same target (curriculum).
 
@@ -580,8 +586,10 @@ def whole_scene_tasks(
     the target is redrawn until a uniform random walk succeeds at most that often at
     every altitude, and with ``max_blind`` until the best view-blind policy succeeds at
     most that often at every altitude with start cells on every side of the target (see
-    :func:`sample_meta_tasks`).
+    :func:`sample_meta_tasks`). ``progress``: callback (phase, fraction), phases
+    "obstacles" (altitudes done) and "target" (candidate targets tried, of at most 200).
     """
+    report = progress or (lambda phase, fraction: None)
     camera = camera or Camera()
     _check_chance_limit(max_random_walk)
     _check_chance_limit(max_blind, "max_blind")
@@ -603,9 +611,11 @@ def whole_scene_tasks(
             region_m = (x0, y0, x0 + nx * step_m, y0 + ny * step_m)
     lattice = Lattice(region_m, step_m)
     blocked_all = np.zeros(lattice.shape, bool)
-    for alt in alts_m:
+    report("obstacles", 0.0)
+    for i, alt in enumerate(alts_m):
         blocked_all |= blocked_cells(scene, lattice, alt, obstacles)
         blocked_all |= view_coverage(scene, lattice, alt, camera) < min_coverage
+        report("obstacles", (i + 1) / len(alts_m))
     lowest = blocked_cells(scene, lattice, min(alts_m), obstacles)
     rng = np.random.default_rng(seed)
     # Largest free component at the lowest altitude.
@@ -625,13 +635,15 @@ def whole_scene_tasks(
         raise TaskError(f"no cell of region {region_m} is free, with {min_coverage:.0%} valid "
                         f"imagery in its view, at all of {list(alts_m)} m")
     memo: dict[bytes, bool] = {}  # altitudes with the same obstacles and starts share it
-    for _ in range(200):
+    for tried in range(200):
+        report("target", tried / 200)
         target = tuple(int(v) for v in candidates[rng.integers(len(candidates))])
         tasks = [NavTask(f"scene@{alt:g}m", "scene", region_m, step_m, float(alt),
                          (target[0], target[1]), max_steps, obstacles, min_coverage)
                  for alt in alts_m]
         if all(_chance_ok(bind(task, scene, camera), max_random_walk, max_blind, memo)
                for task in tasks):
+            report("target", 1.0)
             break
     else:
         limits = _limits_text(max_random_walk, max_blind).removeprefix(" and ")

@@ -82,25 +82,33 @@ def run_make(args: argparse.Namespace) -> int:
 
 def _make(args: argparse.Namespace) -> int:
     from geonav.camera import Camera
+    from geonav.cliutil import progress_bar
     from geonav.scene import Scene
     from geonav.tasks import sample_meta_tasks, whole_scene_tasks
 
+    # Long on a large scene (the default one took 14.6 min, silent): the bar on a
+    # terminal, a line every ~30 s in a log, through the chance figures' one long call.
+    progress = progress_bar("tasks")
     scene = Scene.open(args.scene)
     camera = Camera(args.obs_size, args.fov)
     if args.kind == "meta":
         ts = sample_meta_tasks(scene, args.count, size_m=args.size or 150.0, alt_m=args.alt,
                                step_m=args.step, max_steps=args.max_steps or 70, seed=args.seed,
                                camera=camera, min_coverage=args.min_coverage,
-                               max_random_walk=args.max_random_walk, max_blind=args.max_blind)
+                               max_random_walk=args.max_random_walk, max_blind=args.max_blind,
+                               progress=progress)
     else:
         alts = list(args.alts)
         ts = whole_scene_tasks(scene, alts, step_m=args.step, max_steps=args.max_steps or 120,
                                seed=args.seed, size_m=args.size, camera=camera,
                                min_coverage=args.min_coverage,
-                               max_random_walk=args.max_random_walk, max_blind=args.max_blind)
+                               max_random_walk=args.max_random_walk, max_blind=args.max_blind,
+                               progress=progress)
     from geonav.difficulty import describe, taskset_difficulty
 
+    progress("chance figures", 0.0)
     ts.meta["difficulty"] = diff = taskset_difficulty(ts, scene)
+    progress("chance figures", 1.0)
     ts.save(args.out)
     t = ts.tasks[0]
     nx, ny = t.lattice.shape

@@ -118,3 +118,41 @@ def test_nothing_imports_the_root_cli():
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.ImportFrom):
                 assert node.module != "geonav.cli", path
+
+
+def test_long_steps_write_progress_lines_in_a_log(monkeypatch, capsys):
+    """Not on a terminal, progress is a line every ~30 s (GEONAV_PROGRESS_S), also through
+    a phase that blocks in one long call (the chance figures of a task set: `tasks make`
+    ran 14.6 min without a line); none once the phase is done, none with -q."""
+    import time
+
+    from geonav import cliutil
+
+    monkeypatch.setenv("GEONAV_PROGRESS_S", "0.1")
+    monkeypatch.setattr(cliutil, "is_terminal", lambda: False)
+    progress = cliutil.progress_bar("tasks")
+    progress("chance figures", 0.0)
+    time.sleep(0.5)  # one long call, no progress calls
+    progress("chance figures", 1.0)
+    time.sleep(0.3)
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) >= 2 and all(ln.startswith("tasks: chance figures 0% (") for ln in lines)
+    assert "\r" not in "".join(lines)
+    progress.close()
+    assert cliutil.progress_bar("x", disable=True)("p", 0.5) is None
+    monkeypatch.setattr(cliutil, "QUIET", True)
+    quiet = cliutil.progress_bar("x")
+    quiet("p", 0.0)
+    time.sleep(0.3)
+    assert capsys.readouterr().err == ""
+
+
+def test_task_samplers_report_progress(scene):
+    from geonav.tasks import sample_meta_tasks, whole_scene_tasks
+
+    seen: list[tuple[str, float]] = []
+    whole_scene_tasks(scene, (75.0, 45.0), progress=lambda p, f: seen.append((p, f)))
+    assert ("obstacles", 1.0) in seen and seen[-1] == ("target", 1.0)
+    seen.clear()
+    sample_meta_tasks(scene, 2, size_m=60.0, alt_m=30.0, progress=lambda p, f: seen.append((p, f)))
+    assert seen == [("meta-tasks", 0.0), ("meta-tasks", 0.5), ("meta-tasks", 1.0)]

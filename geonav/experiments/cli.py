@@ -260,15 +260,19 @@ def _bars(name: str, disable: bool = False):
 
 
 def run_report(args: argparse.Namespace) -> int:
+    from geonav.cliutil import progress_bar
     from geonav.experiments.config import load_config
     from geonav.experiments.report import write_report
     from geonav.experiments.runner import prepare_inputs
 
     cfg = load_config(args.config, _overrides(args))
     root = Path(args.out) / cfg.name
-    scenes, tasks = prepare_inputs(cfg, root)
+    progress = progress_bar("report")
+    scenes, tasks = prepare_inputs(cfg, root, progress)
+    progress("units, curves and plots", 0.0)  # a line every ~30 s in a log while it runs
     summary = write_report(cfg, root, cfg.stages_for(args.only), scenes, tasks, {},
                            partial=args.partial, parts=args.only)
+    progress("units, curves and plots", 1.0)
     print(f"report: {root / 'report.md'}")
     for key, why in summary["unreadable"].items():
         print(f"  left out, unreadable: {key}: {why}")

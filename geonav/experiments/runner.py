@@ -150,14 +150,20 @@ def prepare_inputs(cfg: ExperimentConfig, root: Path,
             from geonav.scene import Scene
 
             out.parent.mkdir(parents=True, exist_ok=True)
-            ts = make_taskset(tspec, scenes[tspec.scene])
+            ts = make_taskset(tspec, scenes[tspec.scene], progress)
+            if progress is not None:
+                progress(f"chance figures of {key}", 0.0)
             ts.meta["difficulty"] = taskset_difficulty(ts, Scene.open(scenes[tspec.scene]))
+            if progress is not None:
+                progress(f"chance figures of {key}", 1.0)
             ts.save(out)
         tasks[key] = str(out.resolve())
     from geonav.experiments.config import check_noise
 
     check_noise(cfg, {k: task_difficulty(scenes[cfg.tasks[k].scene], p)
                       for k, p in tasks.items()})
+    if progress is not None:
+        progress("inputs ready", 1.0)
     return scenes, tasks
 
 
@@ -194,24 +200,29 @@ def task_difficulty(scene_path: str, tasks_path: str) -> dict[str, Any]:
     return taskset_difficulty(ts, Scene.open(scene_path))
 
 
-def make_taskset(spec: TaskSpec, scene_path: str):
-    """The task set a :class:`TaskSpec` describes, on its scene."""
+def make_taskset(spec: TaskSpec, scene_path: str,
+                 progress: Callable[[str, float], None] | None = None):
+    """The task set a :class:`TaskSpec` describes, on its scene (``progress``: callback
+    (phase, fraction) of the sampler, its phases named after the task set)."""
     from geonav.camera import Camera
     from geonav.scene import Scene
     from geonav.tasks import sample_meta_tasks, whole_scene_tasks
 
     scene = Scene.open(scene_path)
     camera = Camera(spec.obs_size_px, spec.fov_deg)
+    named = None if progress is None else \
+        (lambda phase, f: progress(f"{phase} of {spec.name}", f))  # type: ignore[misc]
     if spec.kind == "meta":
         return sample_meta_tasks(scene, spec.count, size_m=spec.size_m or 150.0,
                                  alt_m=spec.alt_m, step_m=spec.step_m, max_steps=spec.max_steps,
                                  seed=spec.seed, camera=camera, margin_alt_m=spec.margin_alt_m,
                                  max_overlap=spec.max_overlap,
                                  max_random_walk=spec.max_random_walk,
-                                 max_blind=spec.max_blind)
+                                 max_blind=spec.max_blind, progress=named)
     return whole_scene_tasks(scene, spec.alts_m, step_m=spec.step_m, max_steps=spec.max_steps,
                              seed=spec.seed, size_m=spec.size_m, camera=camera,
-                             max_random_walk=spec.max_random_walk, max_blind=spec.max_blind)
+                             max_random_walk=spec.max_random_walk, max_blind=spec.max_blind,
+                             progress=named)
 
 
 def _read_json(path: Path) -> dict[str, Any] | None:
