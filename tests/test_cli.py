@@ -156,3 +156,21 @@ def test_task_samplers_report_progress(scene):
     seen.clear()
     sample_meta_tasks(scene, 2, size_m=60.0, alt_m=30.0, progress=lambda p, f: seen.append((p, f)))
     assert seen == [("meta-tasks", 0.0), ("meta-tasks", 0.5), ("meta-tasks", 1.0)]
+
+
+def test_package_docstrings_name_the_entry_points():
+    """help(geonav) and help(geonav.policy) name the default engine's entry point, PPO and
+    the checkpoint evaluation, and each one they name is importable from geonav.policy."""
+    import geonav
+    import geonav.policy as policy
+
+    for doc in (geonav.__doc__, policy.__doc__):
+        for name in ("build_trainer", "PPO", "evaluate_checkpoint", "build_meta_trainer",
+                     "run_curriculum"):
+            assert name in doc, name
+    assert callable(policy.build_trainer) and callable(policy.evaluate_checkpoint)
+    assert policy.PPOConfig.__name__ == "PPOConfig"
+    code = ("import sys, geonav.policy; print('torch' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.strip()
+    assert out == "False"  # the package itself stays cheap to import
