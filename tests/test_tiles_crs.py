@@ -136,3 +136,22 @@ def test_feet_dsm_becomes_metres(tmp_path):
                        compress="DEFLATE")
     assert np.nanmax(scene.dsm) == pytest.approx(100 * US_FT, abs=0.01)
     assert scene.manifest["ground_alt_m"] == pytest.approx(100 * US_FT, abs=0.01)
+
+
+def test_half_the_nominal_gsd_of_a_projected_source_is_accepted(tmp_path):
+    """A 0.5 m UTM pixel is 0.5001 m on the ground here (UTM's scale factor is below 1 near
+    the central meridian): --gsd 0.25 is 2x, not more, and was refused with "use >=
+    0.250". A finer --gsd is refused with a value that then works."""
+    from geonav.errors import IngestError
+
+    src = _write_marker_tif(tmp_path / "utm.tif", 32631, 4.4777, 51.9244, gsd_m=0.5)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", GeonavWarning)
+        scene = ingest([src], name="u", out=tmp_path / "scene", compress="DEFLATE",
+                       gsd_m=0.25)
+        assert scene.gsd_m == 0.25
+        with pytest.raises(IngestError, match=r"use --gsd 0\.2476 or more") as err:
+            ingest([src], name="u", out=tmp_path / "fine", compress="DEFLATE", gsd_m=0.2)
+        assert "native 0.5001 m/px" in str(err.value)  # more than 0.5: the scale factor
+        scene = ingest([src], name="u", out=tmp_path / "ok", compress="DEFLATE", gsd_m=0.2476)
+    assert scene.gsd_m == 0.2476
