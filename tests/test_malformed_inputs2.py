@@ -24,29 +24,15 @@ from geonav.errors import GeonavWarning, OutputBusy
 
 rasterio = pytest.importorskip("rasterio")
 
-UTM31 = "EPSG:32631"
-X0, Y0 = 594000.0, 5754000.0  # Rotterdam in UTM 31N
+from raster_helpers import UTM31, X0, Y0, make_utm_tif, texture, write_raster  # noqa: E402
 
-
-def _write(path: Path, data: np.ndarray, crs: str, transform: Affine, **kw) -> Path:
-    data = data if data.ndim == 3 else data[None]
-    with rasterio.open(path, "w", driver="GTiff", width=data.shape[2], height=data.shape[1],
-                       count=data.shape[0], dtype=data.dtype, crs=crs, transform=transform,
-                       **kw) as dst:
-        dst.write(data)
-    return path
-
-
-def _texture(h: int, w: int, seed: int = 0) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    return (60 + rng.integers(0, 80, (3, h, w))).astype(np.uint8)
+_write = write_raster
+_texture = texture
 
 
 @pytest.fixture(scope="module")
 def utm_tif(tmp_path_factory) -> Path:
-    """160 x 160 m of texture at 1 m in UTM 31N."""
-    d = tmp_path_factory.mktemp("utm")
-    return _write(d / "utm.tif", _texture(160, 160), UTM31, Affine(1, 0, X0, 0, -1, Y0))
+    return make_utm_tif(tmp_path_factory)
 
 
 def _cli(argv: list, capsys) -> tuple[int, str, str]:
