@@ -1,7 +1,7 @@
 """How hard a navigation task is by chance: exact random-walk success, shortest paths.
 
 A learning result means something only beside what no learning already achieves
-(ALGORITHMS.md (f)). For a bound task (:class:`geonav.tasks.TaskMap`) this module
+(ALGORITHMS.md (f)). For a bound task (:class:`geonav.lattice.TaskMap`) this module
 computes, exactly and without sampling, by dynamic programming over the lattice:
 
 * the success probability of a uniform random walk within ``max_steps`` from the
@@ -26,15 +26,12 @@ from __future__ import annotations
 import itertools
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from geonav.errors import TaskError
-from geonav.tasks import ACTION_MOVES
-
-if TYPE_CHECKING:
-    from geonav.tasks import TaskMap
+from geonav.lattice import ACTION_MOVES, TaskMap, bind
 
 
 def _next_index(blocked: np.ndarray) -> np.ndarray:
@@ -195,8 +192,6 @@ def env_difficulty(env: Any, blind_grid: int = 20) -> dict[str, Any]:
 def taskset_difficulty(ts: Any, scene: Any, blind_grid: int = 20) -> dict[str, Any]:
     """:func:`set_difficulty` of a :class:`geonav.tasks.TaskSet` on its scene (the value
     ``geonav tasks make`` stores in the task set's ``meta["difficulty"]``)."""
-    from geonav.tasks import bind
-
     ts.check_scene(scene)
     return set_difficulty([bind(t, scene, ts.camera) for t in ts.tasks], None, blind_grid)
 
