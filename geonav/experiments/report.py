@@ -1,8 +1,13 @@
-"""summary.json and report.md of an experiment: convergence tables, curves, trajectories."""
+"""summary.json and report.md of an experiment: convergence tables, curves, trajectories.
+
+This module owns the report's text and summary: per comparison a table of both
+convergence rules' e* over seeds, final evaluations, ratios and verdicts, and the
+sections of the stages the methods start from. A unit's figures come from
+:mod:`geonav.experiments.unit_stats`, the pictures from :mod:`geonav.experiments.plots`.
+"""
 
 from __future__ import annotations
 
-import csv
 import json
 import logging
 import math
@@ -16,77 +21,26 @@ from geonav.convergence import (
     ConvergenceCriterion,
     ConvergenceResult,
     EvalConvergence,
-    area_under_curve,
-    episodes_to_convergence,
-    eval_convergence,
-    moving_success_rate,
     summarize,
 )
-from geonav.errors import ReportError
+from geonav.errors import MissingExtra, ReportError
 from geonav.experiments.config import CompareSpec, ExperimentConfig
-from geonav.experiments.runner import RESULT, Unit, read_result, unit_dir
+from geonav.experiments.plots import plot_curves, plot_trajectories
+from geonav.experiments.unit_stats import (
+    evaluated,
+    in_progress_result,
+    read_eval_column,
+    read_evals,
+    read_success,
+    unit_stats,
+)
+from geonav.experiments.units import RESULT, Unit, read_result, unit_dir
+
+#: Names that moved to :mod:`~geonav.experiments.unit_stats`, still importable from here.
+__all__ = ["evaluated", "in_progress_result", "read_eval_column", "read_evals",
+           "read_success", "unit_stats", "verdict", "write_report"]
 
 log = logging.getLogger(__name__)
-
-
-def read_success(metrics_csv: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(success, elapsed_s, length, shortest_path) per episode in completion order. A
-    last row cut short (a run still writing, or killed mid-line) is left out.
-
-    Raises:
-        ReportError: a row that cannot be read is followed by others (a corrupt file, not
-            a cut last row): the curve would silently stop there.
-    """
-    succ: list[bool] = []
-    wall: list[float] = []
-    length: list[float] = []
-    short: list[float] = []
-    bad: int | None = None
-    with open(metrics_csv, newline="") as f:
-        for line, row in enumerate(csv.DictReader(f), start=2):
-            if bad is not None:
-                raise ReportError(f"{metrics_csv}: line {bad} cannot be read (success, "
-                                  "elapsed_s, length, shortest_path) but is not the last row; "
-                                  "the file is corrupt: repair or remove that line, or rerun "
-                                  "the unit (delete its folder)")
-            try:
-                values = (float(row["success"]) > 0.5, float(row.get("elapsed_s") or "nan"),
-                          float(row.get("length") or "nan"),
-                          float(row.get("shortest_path") or "nan"))
-            except (TypeError, ValueError):
-                bad = line
-                continue
-            succ.append(values[0])
-            wall.append(values[1])
-            length.append(values[2])
-            short.append(values[3])
-    return np.array(succ, bool), np.array(wall), np.array(length), np.array(short)
-
-
-def read_evals(eval_csv: Path) -> tuple[np.ndarray, np.ndarray]:
-    """(training episode, greedy SR over all starts) of a run's periodic evaluations."""
-    ep, sr = [], []
-    if eval_csv.exists():
-        with open(eval_csv, newline="") as f:
-            for row in csv.DictReader(f):
-                ep.append(int(float(row["episode"])))
-                sr.append(float(row["greedy_sr"]))
-    return np.array(ep, int), np.array(sr)
-
-
-def read_eval_column(eval_csv: Path, column: str) -> np.ndarray:
-    """One figure of a run's periodic evaluations, row by row as :func:`read_evals` reads
-    them (e.g. ``ablated_sr``, the view-ablated greedy SR); NaN where a row lacks it (files
-    written before the column existed, or an empty cell)."""
-    out: list[float] = []
-    if eval_csv.exists():
-        with open(eval_csv, newline="") as f:
-            for row in csv.DictReader(f):
-                try:
-                    out.append(float(row.get(column) or "nan"))
-                except ValueError:
-                    out.append(math.nan)
-    return np.array(out, float)
 
 
 def verdict(a: str, ra: list[ConvergenceResult | EvalConvergence], b: str,
@@ -110,84 +64,6 @@ def verdict(a: str, ra: list[ConvergenceResult | EvalConvergence], b: str,
             f"{min(vb):.0f}-{max(vb):.0f} overlap)")
 
 
-def in_progress_result(out_dir: Path) -> dict[str, Any] | None:
-    """A stand-in result for a unit that has started but not finished (no result.json):
-    where its metrics and evaluations are being written and how many episodes came before
-    them. For a curriculum unit only its last level counts (the one its e* is measured on);
-    one still on an earlier level gives None, as does a unit with no metrics yet."""
-    curriculum = out_dir / "curriculum.json"
-    if curriculum.exists():
-        state = json.loads(curriculum.read_text())
-        levels = state.get("curriculum", {}).get("levels_m") or []
-        done = state.get("stages") or []
-        if not levels or len(done) != len(levels) - 1:
-            return None
-        found = sorted(out_dir.glob(f"stage_{len(done)}_*/metrics.csv"))
-        if not found:
-            return None
-        metrics = found[0]
-        before = sum(int(st.get("episodes", 0)) for st in done)
-    else:
-        metrics, before = out_dir / "metrics.csv", 0
-    if not metrics.exists():
-        return None
-    return dict(metrics=str(metrics), evals=str(metrics.with_name("eval.csv")),
-                episodes_before_metrics=before, in_progress=True)
-
-
-def unit_stats(root: Path, unit: Unit, criterion: ConvergenceCriterion,
-               partial: bool = False) -> dict[str, Any] | None:
-    """Convergence, wall time and final evaluation of one finished unit; with ``partial``,
-    also of one still running (see :func:`in_progress_result`): its e* is taken over the
-    episodes it has so far, so a run that has not met the rule counts, censored, at the
-    episode it has reached (a lower bound), and it has no final evaluation.
-
-    Raises:
-        ReportError: the unit finished but its files cannot be read (a result.json that is
-            not JSON, a metrics file it names that is missing or corrupt).
-    """
-    out_dir = unit_dir(root, unit)
-    result_path = out_dir / RESULT
-    if result_path.exists():
-        found = read_result(out_dir)
-        if found is None:
-            raise ReportError(f"{result_path} cannot be read (not JSON); rerun the unit "
-                              "(delete its folder)")
-        result = found
-    elif partial and (stand_in := in_progress_result(out_dir)) is not None:
-        result = stand_in
-    else:
-        return None
-    metrics = Path(result.get("metrics") or out_dir / "metrics.csv")
-    if not metrics.exists():
-        raise ReportError(f"{result_path} names the metrics file {metrics}, which does not "
-                          "exist: copy the whole run folder, or rerun the unit (delete its "
-                          "folder)")
-    success, wall, length, short = read_success(metrics)
-    conv = episodes_to_convergence(success, criterion)
-    wall_to = None
-    if conv.episodes is not None and len(wall) >= conv.episodes:
-        wall_to = float(wall[conv.episodes - 1])
-    tail = slice(max(0, len(success) - criterion.window), None)
-    ok = success[tail]
-    ratio = float(np.nanmean(length[tail][ok] / np.maximum(short[tail][ok], 1))) if ok.any() \
-        else math.nan
-    eval_path = Path(result.get("evals") or metrics.with_name("eval.csv"))
-    eval_ep, eval_sr = read_evals(eval_path)
-    eval_conv = eval_convergence(eval_ep, eval_sr, int(len(success)), criterion.eval_threshold)
-    return dict(
-        seed=unit.seed, conv=conv, eval_conv=eval_conv, eval_episodes=eval_ep,
-        eval_greedy_sr=eval_sr, eval_ablated_sr=read_eval_column(eval_path, "ablated_sr"),
-        episodes=int(len(success)), wall_to_convergence_s=wall_to,
-        wall_total_s=float(wall[-1]) if len(wall) else None,
-        auc=area_under_curve(success, criterion.window),
-        length_over_shortest=ratio,
-        eval=result.get("eval", {}), success=success,
-        trajectories=result.get("trajectories", []), result=result,
-        in_progress=bool(result.get("in_progress")),
-    )
-
-
 def _stats(root: Path, unit: Unit, criterion: ConvergenceCriterion, partial: bool,
            unreadable: dict[str, str]) -> dict[str, Any] | None:
     """:func:`unit_stats`, with a unit whose files cannot be read recorded in
@@ -207,18 +83,12 @@ def _seed_stats(results: list[Any]) -> dict[str, Any] | None:
     ``stats`` extra or runs)."""
     if not results:
         return None
-    from geonav.errors import MissingExtra
     from geonav.experiments.stats import seed_summary
 
     try:
         return seed_summary([r.value() for r in results], [r.censored for r in results])
     except MissingExtra:
         return None
-
-
-def evaluated(stats: list[dict[str, Any]]) -> list[Any]:
-    """The evaluation e* of the runs that have periodic evaluation rows."""
-    return [s["eval_conv"] for s in stats if s["eval_conv"].evaluations > 0]
 
 
 def _fmt_iqm(st: dict[str, Any] | None) -> str:
@@ -387,98 +257,121 @@ def _comparison(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
     cens: dict[str, dict[str, bool]] = {"train": {}, "eval": {}}
     all_cens: dict[str, dict[str, bool]] = {"train": {}, "eval": {}}
     for m in comp.methods:
-        stats = stats_by_stage[m]
-        conv = summarize([s["conv"] for s in stats])
-        # runs without evaluation rows (eval_every = 0, no eval.csv) have no evaluation e*
-        econv = summarize(evaluated(stats))
-        # count_parents: e* by both rules (and so the ratios and verdicts) counts every
-        # episode of the stages the method started from (meta-training, earlier levels)
-        conv_total = summarize([_with_parents(cfg, root, m, s, s["conv"]) for s in stats]) \
-            if comp.count_parents else None
-        econv_total = summarize([_with_parents(cfg, root, m, s, s["eval_conv"])
-                                 for s in stats if s["eval_conv"].evaluations > 0]) \
-            if comp.count_parents else None
-        wall = _median([s["wall_to_convergence_s"] for s in stats])
-        ev = [s["eval"] for s in stats]
-        g_sr, g_spl = _median([e.get("greedy_sr") for e in ev]), \
-            _median([e.get("greedy_spl") for e in ev])
-        s_sr, s_spl = _median([e.get("sampled_sr", e.get("success_rate")) for e in ev]), \
-            _median([e.get("sampled_spl", e.get("spl")) for e in ev])
-        a_sr = _median([e.get("ablated_sr") for e in ev])
-        zs = [e["zero_shot"]["greedy_sr"] for e in ev if e.get("zero_shot")]
-        zs_med = _median(zs)
-        zs_abl = _median([e["zero_shot"].get("ablated_sr") for e in ev if e.get("zero_shot")])
-        ratio = _median([e.get("greedy_length_ratio") for e in ev])
-        st_train = _seed_stats([s["conv"] for s in stats])
-        st_eval = _seed_stats(evaluated(stats))
-        cell = _fmt_conv(conv) + _fmt_iqm(st_train)
-        if conv_total is not None:
-            cell += f" (incl. earlier stages: {_fmt_conv(conv_total)})"
-        n_run = sum(s["in_progress"] for s in stats)
-        if n_run:
-            cell += f" ({n_run} of {len(stats)} still running)"
-        ecell = _fmt_conv(econv) + _fmt_iqm(st_eval)
-        if econv_total is not None:
-            ecell += f" (incl. earlier stages: {_fmt_conv(econv_total)})"
-        lines.append(
-            f"| {m} | {cell} | {ecell} | "
-            f"{conv['censored']}/{conv['n']} / "
-            f"{econv['censored']}/{econv['n']} | {_f(g_sr)} / {_f(g_spl)} | "
-            f"{_f(s_sr)} / {_f(s_spl)} | {_f(a_sr)} | "
-            f"{_f(zs_med) + (f' [{min(zs):.2f}-{max(zs):.2f}]' if zs else '')}"
-            f"{f' (view-ablated {zs_abl:.2f})' if zs_abl is not None else ''} | "
-            f"{_f(ratio)} | {'n/a' if wall is None else f'{wall:.1f} s'} |")
-        for rule, c in (("train", conv_total or conv), ("eval", econv_total or econv)):
+        row, rec = _method_row(cfg, comp, root, m, stats_by_stage[m])
+        lines.append(row)
+        record["methods"][m] = rec
+        for rule, c in (("train", rec["convergence_incl_parents"] or rec["convergence"]),
+                        ("eval", rec["eval_convergence_incl_parents"]
+                         or rec["eval_convergence"])):
             if c["median"] is not None:
                 med[rule][m] = c["median"]
                 cens[rule][m] = bool(c["median_censored"])
                 all_cens[rule][m] = c["censored"] == c["n"]
-        record["methods"][m] = dict(
-            convergence=conv, eval_convergence=econv, convergence_incl_parents=conv_total,
-            eval_convergence_incl_parents=econv_total,
-            convergence_stats=st_train, eval_convergence_stats=st_eval,
-            wall_to_convergence_s=wall, final_greedy_sr=g_sr, final_greedy_spl=g_spl,
-            final_sampled_sr=s_sr, final_sampled_spl=s_spl, final_ablated_sr=a_sr,
-            zero_shot_greedy_sr=zs_med, zero_shot_ablated_sr=zs_abl,
-            greedy_length_over_shortest=ratio,
-            auc=_median([s["auc"] for s in stats]),
-            in_progress=sum(s["in_progress"] for s in stats),
-            runs=[dict(seed=s["seed"], conv=s["conv"], eval_conv=s["eval_conv"],
-                       episodes=s["episodes"], eval=s["eval"], in_progress=s["in_progress"],
-                       wall_total_s=s["wall_total_s"]) for s in stats])
     lines += ["", "median [min-max] over seeds; IQM: interquartile mean with a 95 % "
               "stratified-bootstrap interval (rliable). `+`: a lower bound (censored runs, "
               "which never met the rule within their budget, count at their budget).", ""]
     record.update(_compute(cfg, comp, root, stats_by_stage, summary["unreadable"]))
     if len(comp.methods) >= 2:
-        a, b = comp.methods[:2]
-        record["ratio"], record["eval_ratio"] = None, None
-        record["paper_ratio"] = comp.paper[b] / comp.paper[a] \
-            if a in comp.paper and b in comp.paper and comp.paper[a] else None
-        for rule, label in (("train", "training-SR e*"), ("eval", "greedy-evaluation e*")):
-            text, value = _ratio_text(a, b, med[rule], cens[rule], comp, label,
-                                      all_cens[rule])
-            lines += [text, ""]
-            record["ratio" if rule == "train" else "eval_ratio"] = value
-        for rule, key, label in (("train", "conv", "training-SR rule"),
-                                 ("eval", "eval_conv", "greedy-evaluation rule")):
-            def pick(method: str, key: str = key) -> list[Any]:
-                runs = [s for s in stats_by_stage[method]
-                        if key == "conv" or s["eval_conv"].evaluations > 0]
-                if comp.count_parents:
-                    return [_with_parents(cfg, root, method, s, s[key]) for s in runs]
-                return [s[key] for s in runs]
-
-            v = verdict(a, pick(a), b, pick(b))
-            record["verdict" if rule == "train" else "eval_verdict"] = v
-            lines += [f"**Verdict ({label}): {v}.**", ""]
-    png = _plot_curves(cfg, comp, root, stats_by_stage, chance)
+        lines += _ratios_and_verdicts(cfg, comp, root, stats_by_stage, med, cens, all_cens,
+                                      record)
+    png = plot_curves(cfg, comp, root, stats_by_stage, chance)
     lines += [f"![learning curves]({png.name})", ""]
-    traj = _plot_trajectories(cfg, comp, root, stats_by_stage, scenes)
+    traj = plot_trajectories(cfg, comp, root, stats_by_stage, scenes)
     if traj is not None:
         lines += [f"![trajectories]({traj.name})", ""]
     lines += _parent_sections(cfg, comp, root, summary, record)
     summary["comparisons"].append(record)
+    return lines
+
+
+def _method_row(cfg: ExperimentConfig, comp: CompareSpec, root: Path, m: str,
+                stats: list[dict[str, Any]]) -> tuple[str, dict[str, Any]]:
+    """One method's row of a comparison table and its record in summary.json."""
+    conv = summarize([s["conv"] for s in stats])
+    # runs without evaluation rows (eval_every = 0, no eval.csv) have no evaluation e*
+    econv = summarize(evaluated(stats))
+    # count_parents: e* by both rules (and so the ratios and verdicts) counts every
+    # episode of the stages the method started from (meta-training, earlier levels)
+    conv_total = summarize([_with_parents(cfg, root, m, s, s["conv"]) for s in stats]) \
+        if comp.count_parents else None
+    econv_total = summarize([_with_parents(cfg, root, m, s, s["eval_conv"])
+                             for s in stats if s["eval_conv"].evaluations > 0]) \
+        if comp.count_parents else None
+    wall = _median([s["wall_to_convergence_s"] for s in stats])
+    ev = [s["eval"] for s in stats]
+    g_sr, g_spl = _median([e.get("greedy_sr") for e in ev]), \
+        _median([e.get("greedy_spl") for e in ev])
+    s_sr, s_spl = _median([e.get("sampled_sr", e.get("success_rate")) for e in ev]), \
+        _median([e.get("sampled_spl", e.get("spl")) for e in ev])
+    a_sr = _median([e.get("ablated_sr") for e in ev])
+    zs = [e["zero_shot"]["greedy_sr"] for e in ev if e.get("zero_shot")]
+    zs_med = _median(zs)
+    zs_abl = _median([e["zero_shot"].get("ablated_sr") for e in ev if e.get("zero_shot")])
+    ratio = _median([e.get("greedy_length_ratio") for e in ev])
+    st_train = _seed_stats([s["conv"] for s in stats])
+    st_eval = _seed_stats(evaluated(stats))
+    cell = _fmt_conv(conv) + _fmt_iqm(st_train)
+    if conv_total is not None:
+        cell += f" (incl. earlier stages: {_fmt_conv(conv_total)})"
+    n_run = sum(s["in_progress"] for s in stats)
+    if n_run:
+        cell += f" ({n_run} of {len(stats)} still running)"
+    ecell = _fmt_conv(econv) + _fmt_iqm(st_eval)
+    if econv_total is not None:
+        ecell += f" (incl. earlier stages: {_fmt_conv(econv_total)})"
+    row = (
+        f"| {m} | {cell} | {ecell} | "
+        f"{conv['censored']}/{conv['n']} / "
+        f"{econv['censored']}/{econv['n']} | {_f(g_sr)} / {_f(g_spl)} | "
+        f"{_f(s_sr)} / {_f(s_spl)} | {_f(a_sr)} | "
+        f"{_f(zs_med) + (f' [{min(zs):.2f}-{max(zs):.2f}]' if zs else '')}"
+        f"{f' (view-ablated {zs_abl:.2f})' if zs_abl is not None else ''} | "
+        f"{_f(ratio)} | {'n/a' if wall is None else f'{wall:.1f} s'} |")
+    rec = dict(
+        convergence=conv, eval_convergence=econv, convergence_incl_parents=conv_total,
+        eval_convergence_incl_parents=econv_total,
+        convergence_stats=st_train, eval_convergence_stats=st_eval,
+        wall_to_convergence_s=wall, final_greedy_sr=g_sr, final_greedy_spl=g_spl,
+        final_sampled_sr=s_sr, final_sampled_spl=s_spl, final_ablated_sr=a_sr,
+        zero_shot_greedy_sr=zs_med, zero_shot_ablated_sr=zs_abl,
+        greedy_length_over_shortest=ratio,
+        auc=_median([s["auc"] for s in stats]),
+        in_progress=sum(s["in_progress"] for s in stats),
+        runs=[dict(seed=s["seed"], conv=s["conv"], eval_conv=s["eval_conv"],
+                   episodes=s["episodes"], eval=s["eval"], in_progress=s["in_progress"],
+                   wall_total_s=s["wall_total_s"]) for s in stats])
+    return row, rec
+
+
+def _ratios_and_verdicts(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
+                         stats_by_stage: dict[str, list[dict[str, Any]]],
+                         med: dict[str, dict[str, float]], cens: dict[str, dict[str, bool]],
+                         all_cens: dict[str, dict[str, bool]],
+                         record: dict[str, Any]) -> list[str]:
+    """The ratio and verdict lines of a comparison's first two methods, by both rules
+    (stored into ``record``)."""
+    lines: list[str] = []
+    a, b = comp.methods[:2]
+    record["ratio"], record["eval_ratio"] = None, None
+    record["paper_ratio"] = comp.paper[b] / comp.paper[a] \
+        if a in comp.paper and b in comp.paper and comp.paper[a] else None
+    for rule, label in (("train", "training-SR e*"), ("eval", "greedy-evaluation e*")):
+        text, value = _ratio_text(a, b, med[rule], cens[rule], comp, label,
+                                  all_cens[rule])
+        lines += [text, ""]
+        record["ratio" if rule == "train" else "eval_ratio"] = value
+    for rule, key, label in (("train", "conv", "training-SR rule"),
+                             ("eval", "eval_conv", "greedy-evaluation rule")):
+        def pick(method: str, key: str = key) -> list[Any]:
+            runs = [s for s in stats_by_stage[method]
+                    if key == "conv" or s["eval_conv"].evaluations > 0]
+            if comp.count_parents:
+                return [_with_parents(cfg, root, method, s, s[key]) for s in runs]
+            return [s[key] for s in runs]
+
+        v = verdict(a, pick(a), b, pick(b))
+        record["verdict" if rule == "train" else "eval_verdict"] = v
+        lines += [f"**Verdict ({label}): {v}.**", ""]
     return lines
 
 
@@ -549,7 +442,7 @@ def _parent_sections(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
                       if record.get("blind_sr") is not None else "") + ")"
                    if "random_walk_sr" in record else "") + ".", ""]
         fake = CompareSpec(name=f"{comp.name} - stage {p}", methods=(p,))
-        png = _plot_curves(cfg, fake, root, {p: stats}, chance)
+        png = plot_curves(cfg, fake, root, {p: stats}, chance)
         lines += [f"![{p} curves]({png.name})", ""]
         summary.setdefault("stages", {})[p] = dict(
             final_greedy_sr=_median([e.get("greedy_sr") for e in ev]),
@@ -578,120 +471,3 @@ def _with_parents(cfg: ExperimentConfig, root: Path, stage: str, s: dict[str, An
                    budget=conv.budget + extra)
 
 
-def _slug(text: str) -> str:
-    return "".join(c if c.isalnum() else "-" for c in text.lower()).strip("-")
-
-
-def _band(curves: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    import warnings
-
-    n = max(len(c) for c in curves)
-    padded = np.full((len(curves), n), np.nan)
-    for i, c in enumerate(curves):
-        padded[i, :len(c)] = c
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        return (np.nanmedian(padded, axis=0), np.nanmin(padded, axis=0),
-                np.nanmax(padded, axis=0))
-
-
-def _plot_curves(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
-                 stats_by_stage: dict[str, list[dict[str, Any]]],
-                 chance: dict[str, Any] | None = None) -> Path:
-    """Two panels: training SR over the last W episodes, and greedy SR over all starts at
-    each periodic evaluation (with the view-ablated greedy SR dashed, where the rows have
-    it); median and min-max band over seeds; chance lines drawn."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(11, 4), dpi=110, sharey=True)
-    n_max = max([len(s["success"]) for m in comp.methods for s in stats_by_stage[m]] or [1])
-    w = max(1, min(cfg.convergence.window, n_max // 5 or 1))
-    for m in comp.methods:
-        stats = stats_by_stage[m]
-        curves = [moving_success_rate(s["success"], min(w, max(1, len(s["success"]))))
-                  for s in stats]
-        if not curves:
-            continue
-        med, lo, hi = _band(curves)
-        x = np.arange(1, len(med) + 1)
-        (line,) = ax.plot(x, med, label=f"{m} (median of {len(curves)} seeds)")
-        ax.fill_between(x, lo, hi, color=line.get_color(), alpha=0.2)
-        ablated_label = True
-        for i, s in enumerate(stats):
-            if len(s["eval_episodes"]):
-                ax2.plot(s["eval_episodes"], s["eval_greedy_sr"], marker=".", ms=4, lw=1,
-                         color=line.get_color(), alpha=0.8,
-                         label=f"{m}" if i == 0 else None)
-            abl = np.asarray(s.get("eval_ablated_sr", ()), float)
-            if len(abl) == len(s["eval_episodes"]) and np.isfinite(abl).any():
-                ok = np.isfinite(abl)
-                ax2.plot(np.asarray(s["eval_episodes"])[ok], abl[ok], ls="--", lw=1,
-                         color=line.get_color(), alpha=0.8,
-                         label=f"{m}, view-ablated" if ablated_label else None)
-                ablated_label = False
-    for a in (ax, ax2):
-        if chance and "random_walk_sr" in chance:
-            a.axhline(chance["random_walk_sr"], color="red", ls=":", lw=1,
-                      label=f"random walk {chance['random_walk_sr']:.2f}")
-        if chance and chance.get("blind_sr") is not None:
-            a.axhline(chance["blind_sr"], color="orange", ls=":", lw=1,
-                      label=f"best view-blind {chance['blind_sr']:.2f}")
-        a.set_xlabel("training episodes")
-        a.set_ylim(0, 1.02)
-        a.legend(loc="lower right", fontsize=7)
-    ax.axhline(cfg.convergence.threshold, color="grey", ls="--", lw=0.8)
-    ax2.axhline(cfg.convergence.eval_threshold, color="grey", ls="--", lw=0.8)
-    ax.set_ylabel("success rate")
-    ax.set_title(f"training SR (sampled actions, last {w} episodes)", fontsize=9)
-    ax2.set_title("greedy SR over all start cells (one line per seed; dashed: "
-                  "view-ablated)", fontsize=9)
-    fig.suptitle(comp.name, fontsize=10)
-    fig.tight_layout()
-    out = root / f"curves-{_slug(comp.name)}.png"
-    fig.savefig(out)
-    plt.close(fig)
-    return out
-
-
-def _plot_trajectories(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
-                       stats_by_stage: dict[str, list[dict[str, Any]]],
-                       scenes: dict[str, str]) -> Path | None:
-    from geonav.scene import Scene
-    from geonav.tasks import TaskSet
-    from geonav.viz import draw_scene
-
-    tracks = []
-    scene_key = None
-    taskset = None
-    for m in comp.methods:
-        stats = stats_by_stage[m]
-        if not stats or not stats[0]["trajectories"]:
-            continue
-        stage = cfg.stages[m]
-        tspec = cfg.tasks[stage.tasks]
-        scene_key = tspec.scene
-        taskset = TaskSet.load(stats[0]["result"]["tasks"])
-        for traj in stats[0]["trajectories"][:2]:
-            task = taskset.tasks[int(traj["task_index"])]
-            cells = [tuple(c) for c in traj["cells"]]
-            tracks.append((task, cells, f"{m} seed {stats[0]['seed']}: "
-                           f"{'reached' if traj['success'] else 'missed'} in "
-                           f"{len(cells) - 1} steps"))
-    if not tracks or scene_key is None or taskset is None:
-        return None
-    scene = Scene.open(scenes[scene_key])
-    out = root / f"trajectories-{_slug(comp.name)}.png"
-    used = {id(t[0]): t[0] for t in tracks}
-    # Zoomed to the flown regions and at a modest resolution: a whole 2.5 km scene at
-    # full size made 2.4 MB PNGs of which the tracks filled a corner.
-    regions = np.array([t.region_m for t in used.values()], dtype=float)
-    x0, y0 = regions[:, 0].min(), regions[:, 1].min()
-    x1, y1 = regions[:, 2].max(), regions[:, 3].max()
-    pad = 0.08 * max(x1 - x0, y1 - y0)
-    draw_scene(scene, out, tasks=list(used.values()), tracks=tracks, footprints_at=(),
-               bounds_m=(x0 - pad, y0 - pad, x1 + pad, y1 + pad), dpi=90,
-               title=f"{comp.name}: greedy trajectories of the final policies")
-    return out

@@ -30,416 +30,67 @@ at once: the second one fails with :class:`UnitLocked` on those units and leaves
 
 ``result.json`` stores its paths relative to the run folder, so a run folder that is
 copied or moved is reported from where it is (:func:`read_result`).
+
+This module owns the scheduling: opening a run (and refusing one of another config),
+submitting ready units to the backend, collecting, retrying and sharing them, and
+the summaries. The unit folder's records, result.json and lock live in
+:mod:`geonav.experiments.units`, the making of scenes and task sets in
+:mod:`geonav.experiments.inputs`; their names are re-exported here.
 """
 
 from __future__ import annotations
 
-import fcntl
 import hashlib
 import json
 import logging
 import os
-import socket
-import time
 import traceback
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, Future, wait
-from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from geonav.errors import ConfigError, GeonavError
+from geonav.errors import ConfigError
 from geonav.experiments.backend import Backend, WorkerLost, make_backend
-from geonav.experiments.config import ExperimentConfig, TaskSpec
+from geonav.experiments.config import ExperimentConfig
+from geonav.experiments.inputs import coverage_needs, make_taskset, prepare_inputs, task_difficulty
+from geonav.experiments.report import write_report
+from geonav.experiments.units import (
+    ERROR,
+    LOCK,
+    LOCK_WAIT_S,
+    PROGRESS,
+    RESULT,
+    RESULT_PATHS,
+    RETRIES,
+    SHARED_INPUTS,
+    Unit,
+    UnitEvent,
+    UnitLocked,
+    read_json,
+    read_lock,
+    read_result,
+    run_group,
+    run_root,
+    run_unit,
+    unit_dir,
+    unit_lock,
+    write_json,
+    write_result,
+)
+
+#: Names that moved to :mod:`~geonav.experiments.units` and
+#: :mod:`~geonav.experiments.inputs`, still importable from here.
+__all__ = [
+    "ERROR", "LOCK", "LOCK_WAIT_S", "PACKABLE_ALGOS", "PROGRESS", "RESULT", "RESULT_PATHS",
+    "RETRIES", "SHARED_INPUTS", "Unit", "UnitEvent", "UnitLocked", "coverage_needs",
+    "make_taskset", "packs", "prepare_inputs", "read_lock", "read_result", "run_experiment",
+    "run_experiments", "run_group", "run_root", "run_unit", "task_difficulty", "unit_dir",
+    "unit_lock", "write_result",
+]
 
 log = logging.getLogger(__name__)
-
-RESULT = "result.json"
-PROGRESS = "progress.json"
-LOCK = ".lock"
-ERROR = "error.txt"
-RETRIES = "retries.json"
-
-
-class UnitLocked(GeonavError):
-    """A unit folder is being trained by another live process."""
-
-
-@dataclass(frozen=True)
-class Unit:
-    """One stage for one seed."""
-
-    stage: str
-    seed: int
-
-    @property
-    def key(self) -> str:
-        return f"{self.stage}/seed-{self.seed}"
-
-
-@dataclass
-class UnitEvent:
-    """Progress of the experiment, for the CLI's bars."""
-
-    unit: Unit | None
-    status: str  # "skipped" | "started" | "progress" | "done" | "retry" | "failed"
-    episodes: int = 0
-    budget: int = 0
-    done_units: int = 0
-    total_units: int = 0
-    message: str = ""
-    run: str = ""  # the experiment's name (a sweep runs several)
-
-
-def unit_dir(root: Path, unit: Unit) -> Path:
-    return root / "units" / unit.stage / f"seed-{unit.seed}"
-
-
-def prepare_inputs(cfg: ExperimentConfig, root: Path,
-                   progress: Callable[[str, float], None] | None = None,
-                   shared_root: Path | None = None,
-                   stages: list[str] | None = None,
-                   ) -> tuple[dict[str, str], dict[str, str]]:
-    """Make (or reuse) the scene packages and task sets; returns key -> path maps.
-
-    ``shared_root`` (a sweep's folder): inputs go there under names that carry a hash
-    of their spec, so variants with the same scene or task set share one copy.
-    ``stages``: make only the task sets these stages train on, and their scenes (a run
-    of some parts of a config does not synthesise the scenes of the others).
-    """
-    from geonav.demo import ensure_scene
-
-    base = root if shared_root is None else shared_root
-
-    def name(key: str, spec: Any, extra: str = "") -> str:
-        if shared_root is None:
-            return key
-        d = asdict(spec)
-        if d.get("max_blind", 0) is None:  # added later: unset keeps the older names
-            d.pop("max_blind")
-        blob = json.dumps([d, extra], sort_keys=True, default=str)
-        return f"{key}-{hashlib.sha1(blob.encode()).hexdigest()[:8]}"
-
-    task_keys = list(cfg.tasks) if stages is None else \
-        sorted({cfg.stages[k].tasks for k in stages})
-    scene_keys = list(cfg.scenes) if stages is None else \
-        sorted({cfg.tasks[k].scene for k in task_keys})
-    scenes: dict[str, str] = {}
-    for key, spec in cfg.scenes.items():
-        if key not in scene_keys:
-            continue
-        if spec.path:
-            scenes[key] = str(Path(spec.path).resolve())
-        else:
-            out = base / "scenes" / name(key, spec)
-            ensure_scene(out, key, spec.synthetic or "residential", spec.seed, spec.size_m,
-                         spec.gsd_m, progress=progress,
-                         needs=coverage_needs(cfg, key, task_keys))
-            scenes[key] = str(out.resolve())
-    tasks: dict[str, str] = {}
-    for key, tspec in cfg.tasks.items():
-        if key not in task_keys:
-            continue
-        if tspec.path:
-            tasks[key] = str(Path(tspec.path).resolve())
-            continue
-        out = base / "tasks" / f"{name(key, tspec, scenes[tspec.scene])}.json"
-        if not out.exists():
-            from geonav.difficulty import taskset_difficulty
-            from geonav.scene import Scene
-
-            out.parent.mkdir(parents=True, exist_ok=True)
-            ts = make_taskset(tspec, scenes[tspec.scene], progress)
-            if progress is not None:
-                progress(f"chance figures of {key}", 0.0)
-            ts.meta["difficulty"] = taskset_difficulty(ts, Scene.open(scenes[tspec.scene]))
-            if progress is not None:
-                progress(f"chance figures of {key}", 1.0)
-            ts.save(out)
-        tasks[key] = str(out.resolve())
-    from geonav.experiments.config import check_noise
-
-    check_noise(cfg, {k: task_difficulty(scenes[cfg.tasks[k].scene], p)
-                      for k, p in tasks.items()})
-    if progress is not None:
-        progress("inputs ready", 1.0)
-    return scenes, tasks
-
-
-def coverage_needs(cfg: ExperimentConfig, scene_key: str, task_keys: list[str]) -> Any:
-    """What the run flies scene ``scene_key`` at (its task sets among ``task_keys``), for
-    ingestion's warnings: only those views and regions, not the paper's 15 m views and
-    150 m tasks at 300 m."""
-    from geonav.tiles.ingest import CoverageNeeds
-
-    views: list[tuple[float, int, float]] = []
-    tasks: list[tuple[float, float, float]] = []
-    for key in task_keys:
-        t = cfg.tasks[key]
-        if t.scene != scene_key or t.path:
-            continue
-        alts = (t.alt_m,) if t.kind == "meta" else tuple(t.alts_m)
-        views += [(float(a), t.obs_size_px, t.fov_deg) for a in alts]
-        if t.kind == "meta":
-            tasks.append((float(t.size_m or 150.0), float(t.margin_alt_m or t.alt_m),
-                          t.fov_deg))
-    return CoverageNeeds(tuple(views), tuple(tasks))
-
-
-def task_difficulty(scene_path: str, tasks_path: str) -> dict[str, Any]:
-    """The task set's chance figures (geonav.difficulty), computed once and kept in its
-    JSON ``meta["difficulty"]`` (user-supplied task files are left untouched)."""
-    from geonav.difficulty import taskset_difficulty
-    from geonav.scene import Scene
-    from geonav.tasks import TaskSet
-
-    ts = TaskSet.load(tasks_path)
-    if isinstance(ts.meta.get("difficulty"), dict):
-        return ts.meta["difficulty"]
-    return taskset_difficulty(ts, Scene.open(scene_path))
-
-
-def make_taskset(spec: TaskSpec, scene_path: str,
-                 progress: Callable[[str, float], None] | None = None):
-    """The task set a :class:`TaskSpec` describes, on its scene (``progress``: callback
-    (phase, fraction) of the sampler, its phases named after the task set)."""
-    from geonav.camera import Camera
-    from geonav.scene import Scene
-    from geonav.tasks import sample_meta_tasks, whole_scene_tasks
-
-    scene = Scene.open(scene_path)
-    camera = Camera(spec.obs_size_px, spec.fov_deg)
-    named = None if progress is None else \
-        (lambda phase, f: progress(f"{phase} of {spec.name}", f))  # type: ignore[misc]
-    if spec.kind == "meta":
-        return sample_meta_tasks(scene, spec.count, size_m=spec.size_m or 150.0,
-                                 alt_m=spec.alt_m, step_m=spec.step_m, max_steps=spec.max_steps,
-                                 seed=spec.seed, camera=camera, margin_alt_m=spec.margin_alt_m,
-                                 max_overlap=spec.max_overlap,
-                                 max_random_walk=spec.max_random_walk,
-                                 max_blind=spec.max_blind, progress=named)
-    return whole_scene_tasks(scene, spec.alts_m, step_m=spec.step_m, max_steps=spec.max_steps,
-                             seed=spec.seed, size_m=spec.size_m, camera=camera,
-                             max_random_walk=spec.max_random_walk, max_blind=spec.max_blind,
-                             progress=named)
-
-
-def _read_json(path: Path) -> dict[str, Any] | None:
-    try:
-        return json.loads(path.read_text())
-    except (FileNotFoundError, json.JSONDecodeError):
-        return None
-
-
-def _write_json(path: Path, data: dict[str, Any]) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(data, indent=2))
-    os.replace(tmp, path)
-
-
-RESULT_PATHS = ("checkpoint", "metrics", "evals", "scene", "tasks")
-"""The keys of a unit's ``result.json`` that hold paths."""
-
-SHARED_INPUTS = "inputs"
-"""A sweep's folder of shared scenes and task sets, beside its run folders."""
-
-
-def run_root(unit_folder: Path) -> Path:
-    """The run folder of a unit folder ``RUN/units/<stage>/seed-<s>`` (lexically: a unit
-    folder that links to another run's unit is still this run's)."""
-    return Path(os.path.abspath(unit_folder)).parents[2]
-
-
-def write_result(out: Path, result: dict[str, Any]) -> None:
-    """Write a unit's ``result.json`` with its paths relative to the run folder, so a run
-    folder that is copied or moved is read from where it is. A path outside the run folder
-    (a scene or task set the config names, other than a sweep's shared ``inputs/`` beside
-    it) stays absolute."""
-    root = run_root(out)
-    stored = dict(result)
-    for key in RESULT_PATHS:
-        value = stored.get(key)
-        if not value:
-            continue
-        path = os.path.abspath(value)
-        for base in (root, root.parent / SHARED_INPUTS):
-            rel = os.path.relpath(path, base)
-            if not rel.startswith(".."):
-                stored[key] = os.path.relpath(path, root)
-                break
-    _write_json(out / RESULT, stored)
-
-
-def read_result(out: Path) -> dict[str, Any] | None:
-    """A unit's ``result.json`` (None when absent or unreadable) with its paths absolute.
-
-    Relative ones are taken from the run folder. Absolute ones (result.json files written
-    before paths were relative) that lie in the folder the run was in when it ran (found
-    from the unit's own ``units/<stage>/seed-<s>`` segment) are moved to where the run
-    folder is now."""
-    result = _read_json(out / RESULT)
-    if result is None:
-        return None
-    root = run_root(out)
-    old_root = _old_root(result, Path(os.path.abspath(out)))
-    for key in RESULT_PATHS:
-        value = result.get(key)
-        if not value:
-            continue
-        if not os.path.isabs(value):
-            result[key] = os.path.normpath(root / value)
-            continue
-        if old_root is None or old_root == root:
-            continue
-        for old, new in ((old_root, root),
-                         (old_root.parent / SHARED_INPUTS, root.parent / SHARED_INPUTS)):
-            rel = os.path.relpath(value, old)
-            if not rel.startswith(".."):
-                result[key] = str(new / rel)
-                break
-    return result
-
-
-def _old_root(result: dict[str, Any], out: Path) -> Path | None:
-    """The run folder an old result.json's absolute paths were written in: the prefix
-    before this unit's ``units/<stage>/seed-<s>`` in any of them."""
-    segment = f"{os.sep}units{os.sep}{out.parent.name}{os.sep}{out.name}{os.sep}"
-    for key in RESULT_PATHS:
-        value = result.get(key)
-        if isinstance(value, str) and os.path.isabs(value) and segment in value:
-            return Path(value[:value.index(segment)])
-    return None
-
-
-LOCK_WAIT_S = 5.0
-"""How long a unit waits for its folder's lock (a killed holder takes a moment to exit)."""
-
-
-@contextmanager
-def unit_lock(out: Path, wait_s: float = LOCK_WAIT_S) -> Iterator[None]:
-    """Hold the unit folder ``out`` exclusively while a unit trains in it.
-
-    An ``flock`` on ``out/.lock``: the kernel drops it when the holder exits in any way,
-    so a killed holder never blocks a rerun; the file names the holder (pid, host) while
-    it runs and is emptied on a clean release, so a non-empty file found on acquiring
-    is the stale record of a holder that was killed, and is logged as such.
-
-    Args:
-        out: the unit folder.
-        wait_s: keep trying this long before giving up (a holder that was just killed
-            releases the lock only once all its threads have exited).
-
-    Raises:
-        UnitLocked: another live process (this or another machine of a shared folder)
-            is training this unit.
-    """
-    out.mkdir(parents=True, exist_ok=True)
-    fd = os.open(out / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        deadline = time.monotonic() + wait_s
-        while True:
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                break
-            except BlockingIOError as err:
-                if time.monotonic() < deadline:
-                    time.sleep(0.1)
-                    continue
-                holder = os.pread(fd, 4096, 0).decode(errors="replace").strip() or \
-                    "another process"
-                raise UnitLocked(f"unit folder {out} is in use by {holder}: another run of this "
-                                 "experiment is training it; wait for it to finish or stop "
-                                 "it first") from err
-        try:
-            stale = os.pread(fd, 4096, 0).decode(errors="replace").strip()
-            if stale:
-                log.warning("unit folder %s: the previous holder %s is gone (%s); taking over "
-                            "its stale lock", out, stale, _holder_state(stale))
-            me = json.dumps({"pid": os.getpid(), "host": socket.gethostname(),
-                             "since": round(time.time(), 3)})
-            os.ftruncate(fd, 0)
-            os.pwrite(fd, me.encode(), 0)
-            yield
-        finally:
-            os.ftruncate(fd, 0)  # released cleanly: nothing stale left behind
-    finally:
-        os.close(fd)  # closing the descriptor releases the flock
-
-
-def read_lock(out: Path) -> dict[str, Any] | None:
-    """The holder recorded in a unit folder's lock file (None when free or unreadable)."""
-    return _read_json(out / LOCK)
-
-
-def _holder_state(text: str) -> str:
-    try:
-        holder = json.loads(text)
-        pid, host = int(holder["pid"]), str(holder["host"])
-    except (ValueError, KeyError, TypeError):
-        return "unreadable record"
-    if host != socket.gethostname():
-        return f"on host {host}"
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return f"pid {pid} is not running"
-    except PermissionError:
-        pass
-    return f"pid {pid} exists but no longer holds the lock"
-
-
-def run_unit(payload: dict[str, Any]) -> dict[str, Any]:
-    """Run one unit in this process (the function backends execute).
-
-    Holds the unit folder's lock, writes ``result.json`` when done, and on an exception
-    writes its traceback to ``error.txt`` in the unit folder before re-raising.
-    """
-    from geonav.experiments.stages import execute_stage
-
-    out = Path(payload["out_dir"])
-    with unit_lock(out):
-        (out / ERROR).unlink(missing_ok=True)
-        t0 = time.time()
-        try:
-            result = execute_stage(payload)
-        except Exception:
-            (out / ERROR).write_text(traceback.format_exc())
-            raise
-        result["wall_s_this_session"] = time.time() - t0
-        result["worker"] = {"host": socket.gethostname(), "pid": os.getpid()}
-        write_result(out, result)
-    return result
-
-
-def run_group(payloads: list[dict[str, Any]]) -> dict[str, Any]:
-    """Run a packed group (several units of one stage, see :func:`packs`) in this process.
-
-    Holds every member's lock, writes each member's ``result.json`` (and on an exception
-    the traceback to each member's ``error.txt``); returns ``{"members": [results]}``.
-    """
-    from contextlib import ExitStack
-
-    from geonav.experiments.stages import execute_group
-
-    outs = [Path(p["out_dir"]) for p in payloads]
-    with ExitStack() as stack:
-        for out in outs:
-            stack.enter_context(unit_lock(out))
-            (out / ERROR).unlink(missing_ok=True)
-        t0 = time.time()
-        try:
-            results = execute_group(payloads)
-        except Exception:
-            for out in outs:
-                (out / ERROR).write_text(traceback.format_exc())
-            raise
-        for out, result in zip(outs, results, strict=True):
-            result["wall_s_this_session"] = time.time() - t0
-            result["worker"] = {"host": socket.gethostname(), "pid": os.getpid(),
-                                "packed_with": len(outs)}
-            write_result(out, result)
-    return {"members": results}
 
 
 PACKABLE_ALGOS = ("a3c", "ppo", "isar", "savn")
@@ -489,7 +140,7 @@ def _open_run(cfg: ExperimentConfig, out_root: str | os.PathLike[str], only: lis
               shared_inputs: Path | None = None) -> _Run:
     root = Path(out_root).resolve() / cfg.name
     root.mkdir(parents=True, exist_ok=True)
-    previous = _read_json(root / "config.json")
+    previous = read_json(root / "config.json")
     resolved = cfg.to_dict()
     stage_keys = cfg.stages_for(only)
     if previous is not None and not _same_part(_experiment_part(previous, stage_keys),
@@ -497,7 +148,7 @@ def _open_run(cfg: ExperimentConfig, out_root: str | os.PathLike[str], only: lis
         raise ConfigError(f"{root} holds a run of a different config; use another name or "
                           "remove the folder")
     _refuse_orphan_units(root, previous, stage_keys)
-    _write_json(root / "config.json", resolved)
+    write_json(root / "config.json", resolved)
     scenes, tasks = prepare_inputs(cfg, root, progress, shared_inputs,
                                    stage_keys if only else None)
     units = [Unit(s, seed) for s in stage_keys for seed in cfg.seeds]
@@ -609,7 +260,7 @@ def run_experiments(
 
 def _progress(run: _Run, u: Unit, on_event: Callable[[UnitEvent], None] | None,
               runs: list[_Run], total: int) -> None:
-    p = _read_json(unit_dir(run.root, u) / PROGRESS)
+    p = read_json(unit_dir(run.root, u) / PROGRESS)
     if p:
         _emit(on_event, UnitEvent(u, "progress", p.get("episodes", 0),
                                   run.cfg.stages[u.stage].episodes, _n_done(runs), total,
@@ -632,14 +283,12 @@ def _summaries(runs: list[_Run], report: bool) -> list[dict[str, Any]]:
             summaries.append(summary)
             continue
         if report:
-            from geonav.experiments.report import write_report
-
             summary = write_report(run.cfg, run.root, run.stage_keys, run.scenes, run.tasks,
                                    run.failed, parts=run.only)
         summary["retries"] = {u.key: n for u, n in run.retries.items()}
-        written = _read_json(run.root / "summary.json") if report else None
+        written = read_json(run.root / "summary.json") if report else None
         if written is not None:
-            _write_json(run.root / "summary.json", {**written, "retries": summary["retries"]})
+            write_json(run.root / "summary.json", {**written, "retries": summary["retries"]})
         summaries.append(summary)
     return summaries
 
@@ -778,7 +427,7 @@ def _collect_group(run: _Run, group: tuple[Unit, ...], fut: Future, retries_allo
             run.retries[m] = n
             out = unit_dir(run.root, m)
             out.mkdir(parents=True, exist_ok=True)
-            _write_json(out / RETRIES, {"worker_lost": n, "last": str(err), "packed": True})
+            write_json(out / RETRIES, {"worker_lost": n, "last": str(err), "packed": True})
             finished = read_result(out)
             if finished is not None:  # finished before the worker died
                 run.done[m] = finished
@@ -820,7 +469,7 @@ def _collect(run: _Run, u: Unit, fut: Future, retries_allowed: int,
     except WorkerLost as err:
         n = run.retries[u] = run.retries.get(u, 0) + 1
         out.mkdir(parents=True, exist_ok=True)
-        _write_json(out / RETRIES, {"worker_lost": n, "last": str(err)})
+        write_json(out / RETRIES, {"worker_lost": n, "last": str(err)})
         if n <= retries_allowed:
             log.warning("unit %s: its worker died (%s); retry %d of %d from its last "
                         "checkpoint", u.key, err, n, retries_allowed)
