@@ -3,35 +3,21 @@
 from __future__ import annotations
 
 import argparse
-import importlib
 import warnings
 from pathlib import Path
 
 from geonav.cliutil import (
-    bbox_arg,
     finite_float,
-    lonlat_arg,
     needs_subcommand,
     nonneg_int,
     positive_float,
-    positive_int,
     seed_int,
 )
 from geonav.errors import GeonavWarning
-from geonav.tiles import DEFAULT_MEMORY_BUDGET_MB, DSM_UNIT_CHOICES
+from geonav.tiles import DEFAULT_MEMORY_BUDGET_MB, DSM_UNIT_CHOICES, cli_more
+from geonav.tiles.cli_helpers import parse_bands, parse_bbox, parse_lonlat
 
-
-def _bands(text: str) -> tuple[int, ...]:
-    """argparse type of --bands: '4,3,2' or '1' (1-based, like GDAL)."""
-    parts = [p.strip() for p in text.split(",")]
-    if len(parts) not in (1, 3):
-        raise argparse.ArgumentTypeError(f"{text!r}: give three bands R,G,B like 4,3,2, or one")
-    return tuple(positive_int(p) for p in parts)
-
-
-#: argparse types shared by the tiles subcommands (kept under their old names).
-parse_lonlat = lonlat_arg
-parse_bbox = bbox_arg
+__all__ = ["add_parser", "parse_bbox", "parse_lonlat", "run_ingest", "run_synth"]
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -56,7 +42,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="scene GSD in m/px (default: the sources' finest)")
     p.add_argument("--bbox", type=parse_bbox, help="cut to west,south,east,north (degrees)")
     p.add_argument("--origin", type=parse_lonlat, help="scene origin lon,lat[,alt]")
-    p.add_argument("--bands", type=_bands,
+    p.add_argument("--bands", type=parse_bands,
                    help="1-based bands of GeoTIFF sources to use as R,G,B (e.g. 4,3,2 for "
                    "Landsat 8) or one grey band; default: the file's colour interpretation")
     p.add_argument("--dsm-units", choices=DSM_UNIT_CHOICES,
@@ -83,13 +69,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--force", action="store_true", help="replace an existing package")
     p.set_defaults(handler=run_synth)
 
-    try:
-        cli_more = importlib.import_module("geonav.tiles.cli_more")
-    except ModuleNotFoundError as err:
-        if err.name != "geonav.tiles.cli_more":
-            raise
-    else:
-        cli_more.add_parsers(tsub)
+    cli_more.add_parsers(tsub)
 
 
 def _report(scene, out: Path) -> None:

@@ -7,13 +7,11 @@ import json
 import sys
 from pathlib import Path
 
-from geonav.errors import ConfigError
+from geonav.cliutil import nonneg_int, positive_float, positive_floats, positive_int
+from geonav.tiles.cli_helpers import parse_bbox, parse_subdomains
 
 
 def add_parsers(tsub: argparse._SubParsersAction) -> None:
-    from geonav.cliutil import nonneg_int, positive_float, positive_floats, positive_int
-    from geonav.tiles.cli import parse_bbox
-
     p = tsub.add_parser(
         "fetch", help="download XYZ tiles for a lon/lat bbox from a URL template into a cache",
         description="Download the XYZ tiles of a bbox at one zoom from a tile server you may "
@@ -69,14 +67,6 @@ def add_parsers(tsub: argparse._SubParsersAction) -> None:
     p.set_defaults(handler=run_preview)
 
 
-def _subdomains(text: str) -> tuple[str, ...]:
-    parts = [s.strip() for s in text.split(",")] if "," in text else list(text)
-    if not all(parts) or not all(s.replace("-", "").isalnum() for s in parts):
-        raise ConfigError(f"--subdomains {text!r}: give letters like 'abc' or names like "
-                          "'t0,t1,t2' (letters, digits, '-')")
-    return tuple(parts)
-
-
 def run_fetch(args: argparse.Namespace) -> int:
     from geonav.cliutil import progress_bar
     from geonav.tiles.fetch import USER_AGENT, FetchIncomplete, fetch_tiles
@@ -85,7 +75,7 @@ def run_fetch(args: argparse.Namespace) -> int:
         result = fetch_tiles(
             args.url, args.bbox, args.zoom, args.out, attribution=args.attribution,
             max_tiles=args.max_tiles, workers=args.workers,
-            subdomains=_subdomains(args.subdomains), user_agent=args.user_agent or USER_AGENT,
+            subdomains=parse_subdomains(args.subdomains), user_agent=args.user_agent or USER_AGENT,
             timeout_s=args.timeout, retries=args.retries, retry_not_found=args.retry_missing,
             verify=args.verify, progress=progress_bar("fetch"))
     except FetchIncomplete as err:
