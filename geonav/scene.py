@@ -7,6 +7,11 @@ height above the ground, same grid, NaN where unknown) and ``scene.json``.
 :meth:`Scene.open` validates all of it and names exactly what is wrong.
 Packages are written into a temporary folder beside the target and renamed
 into place only when complete.
+
+This module owns :class:`Scene` (the arrays, grid, frame and its load and save) and
+:func:`open_shared`. The package's file names, manifest checks, checksums and temp
+folders live in :mod:`geonav.scene_package`, the decoded-raster memory maps in
+:mod:`geonav.raster_cache`; their public names are re-exported here.
 """
 
 from __future__ import annotations
@@ -17,10 +22,7 @@ import logging
 import math
 import os
 import shutil
-import tempfile
-import uuid
 import weakref
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -29,79 +31,46 @@ import numpy as np
 from affine import Affine
 
 from geonav import __version__
-from geonav.errors import GeonavError, GeonavWarning, SceneError
-from geonav.geo import LonLat, SceneFrame, ScenePoint, parse_crs, transformer
+from geonav.errors import GeonavError, SceneError
+from geonav.geo import LonLat, SceneFrame, parse_crs
+from geonav.raster_cache import (
+    CACHE_ENV,
+    PACKAGE_CACHE,
+    cached_array,
+    file_key,
+    mapped_dsm,
+    mapped_ortho,
+    raster_cache_dir,
+)
+from geonav.scene_package import (
+    BOUNDS_TOL_DEG,
+    BOUNDS_TOL_M,
+    DSM,
+    DSM_HEIGHT_REFERENCE,
+    MANIFEST,
+    ORIGIN_TOL_M,
+    ORTHO,
+    SCHEMA_VERSION,
+    check_bounds,
+    check_origin,
+    checksum_problems,
+    clean_stale_temps,
+    grid_bounds_wgs84,
+    read_manifest,
+    sha256_file,
+    temp_dir,
+    verify_sha256,
+)
+
+__all__ = [
+    "BOUNDS_TOL_DEG", "BOUNDS_TOL_M", "CACHE_ENV", "DSM", "DSM_HEIGHT_REFERENCE", "MANIFEST",
+    "ORIGIN_TOL_M", "ORTHO", "PACKAGE_CACHE", "SCHEMA_VERSION", "Scene", "cached_array",
+    "clean_stale_temps", "file_key", "grid_bounds_wgs84", "mapped_dsm", "mapped_ortho",
+    "open_shared", "raster_cache_dir", "read_manifest", "sha256_file", "temp_dir",
+    "verify_sha256",
+]
 
 log = logging.getLogger(__name__)
-
-SCHEMA_VERSION = 1
-MANIFEST = "scene.json"
-ORTHO = "ortho.tif"
-DSM = "dsm.tif"
-DSM_HEIGHT_REFERENCE = "height above ground (m)"
-
-
-def sha256_file(path: str | os.PathLike[str], chunk: int = 1 << 20) -> str:
-    """Hex sha256 of a file's bytes."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while block := f.read(chunk):
-            h.update(block)
-    return h.hexdigest()
-
-
-_TMP_TAG = "geonav-tmp"
-
-
-def temp_dir(parent: Path, stem: str) -> Path:
-    """A new hidden temporary folder ``parent/.{stem}.geonav-tmp-{pid}-XXXX``.
-
-    The pid in the name lets a later run tell a folder of a killed run (its process
-    is gone) from one still being written (:func:`clean_stale_temps`).
-    """
-    parent.mkdir(parents=True, exist_ok=True)
-    return Path(tempfile.mkdtemp(prefix=f".{stem}.{_TMP_TAG}-{os.getpid()}-", dir=parent))
-
-
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except (PermissionError, OSError):
-        return True  # someone else's process, or cannot tell: leave its folder alone
-    return True
-
-
-def clean_stale_temps(parent: Path, stem: str) -> list[Path]:
-    """Remove the temporary folders of ``stem`` whose writing process no longer runs.
-
-    A run killed with SIGKILL (or a power cut) cannot clean up after itself; the
-    next run does, and says so with a warning. Returns the folders removed.
-    """
-    import warnings
-
-    removed = []
-    if not parent.is_dir():
-        return removed
-    for entry in parent.glob(f".{stem}.{_TMP_TAG}-*"):
-        try:
-            pid = int(entry.name[len(f".{stem}.{_TMP_TAG}-"):].split("-", 1)[0])
-        except ValueError:
-            continue
-        if entry.is_dir() and pid != os.getpid() and not _pid_alive(pid):
-            shutil.rmtree(entry, ignore_errors=True)
-            removed.append(entry)
-            warnings.warn(f"removed {entry}, a temporary folder left by a killed run "
-                          f"(pid {pid})", GeonavWarning, stacklevel=3)
-    return removed
-
-
-def _lon_span(lons: list[float]) -> tuple[float, float]:
-    """(west, east) of corner longitudes; west > east when they straddle 180 degrees."""
-    if max(lons) - min(lons) > 180.0:  # the short way round crosses the antimeridian
-        return min(x for x in lons if x > 0), max(x for x in lons if x < 0)
-    return min(lons), max(lons)
 
 
 @dataclass
@@ -391,7 +360,7 @@ class Scene:
         if not ortho_path.is_file():
             raise SceneError(f"{folder}: {ortho_path.name} is missing")
         if verify_checksums:
-            problems += _checksum_problems(folder, manifest)
+            problems += checksum_problems(folder, manifest)
         try:
             origin = LonLat(**{k: float(manifest["origin"][k])
                                for k in ("lon_deg", "lat_deg", "alt_m")})
@@ -445,7 +414,7 @@ class Scene:
                     dsm = mapped_dsm(dsm_path, src, manifest["dsm"].get("sha256"))
         except RasterioError as err:
             raise SceneError(f"cannot read the rasters of {folder}: {err}") from err
-        _check_origin(folder, manifest, origin)
+        check_origin(folder, manifest, origin)
         if not math.isclose(transform.a, -transform.e, rel_tol=1e-9) or transform.b or transform.d:
             raise SceneError(f"scene {folder}: pixels must be square and north-up, transform "
                              f"is {manifest['transform']}")
@@ -454,264 +423,11 @@ class Scene:
                              f"transform's pixel size {transform.a}; re-create the package")
         if dsm is not None and np.isinf(dsm).any():
             raise SceneError(f"scene {folder}: {manifest['dsm']['file']} holds infinite heights")
-        _check_bounds(folder, manifest, transform, origin)
+        check_bounds(folder, manifest, transform, origin)
         scene = cls(manifest["name"], rgb, mask, float(manifest["gsd_m"]), transform, origin,
                     dsm, manifest, folder)
         scene.__dict__["_mapped"] = (rgb, mask, dsm)
         return scene
-
-
-def _checksum_problems(folder: Path, manifest: dict[str, Any]) -> list[str]:
-    """The package's rasters whose bytes no longer match their sha256 in the manifest."""
-    problems = []
-    for key in ("ortho", "dsm"):
-        entry = manifest.get(key)
-        if isinstance(entry, dict) and (folder / entry["file"]).is_file() and \
-                sha256_file(folder / entry["file"]) != entry.get("sha256"):
-            problems.append(f"{entry['file']} does not match its sha256 in {MANIFEST} (the "
-                            "file changed after geonav wrote it); re-create the package")
-    return problems
-
-
-def verify_sha256(path: Path, expected: str | None) -> None:
-    """SceneError when the file's sha256 is not the one its manifest records."""
-    if expected is not None and sha256_file(path) != expected:
-        raise SceneError(f"{path} does not match its sha256 in {MANIFEST} (the file changed "
-                         "after geonav wrote it); re-create the package with 'geonav tiles "
-                         "ingest ... --force'")
-
-
-#: How far a recorded bound may sit from the grid's own: 1 mm, and 1e-7 degrees (1 cm).
-BOUNDS_TOL_M, BOUNDS_TOL_DEG = 1e-3, 1e-7
-
-
-def grid_bounds_wgs84(frame: SceneFrame, bounds_m: tuple[float, ...]) -> list[float]:
-    """[west, south, east, north] of a scene-metre box; west > east across 180 degrees."""
-    xmin, ymin, xmax, ymax = bounds_m
-    corners = [frame.to_lonlat(ScenePoint(x, y)) for x in (xmin, xmax) for y in (ymin, ymax)]
-    west, east = _lon_span([c.lon_deg for c in corners])
-    return [west, min(c.lat_deg for c in corners), east, max(c.lat_deg for c in corners)]
-
-
-def _check_bounds(folder: Path, manifest: dict[str, Any], transform: Affine,
-                  origin: LonLat) -> None:
-    # The bounds are what readers of scene.json (and task sampling by hand) go by: a
-    # hand-edited pair that no longer describes the grid would mislead them silently.
-    w, h, gsd = manifest["width"], manifest["height"], transform.a
-    grid = (transform.c, transform.f - h * gsd, transform.c + w * gsd, transform.f)
-    if not np.allclose(manifest["bounds_m"], grid, rtol=0, atol=BOUNDS_TOL_M):
-        raise SceneError(f"scene {folder}: bounds_m {manifest['bounds_m']} is not the grid's "
-                         f"{[round(v, 3) for v in grid]} (transform and size); scene.json was "
-                         "edited by hand: re-create the package")
-    wgs84 = grid_bounds_wgs84(SceneFrame(origin), grid)
-    if not np.allclose(manifest["bounds_wgs84"], wgs84, rtol=0, atol=BOUNDS_TOL_DEG):
-        raise SceneError(f"scene {folder}: bounds_wgs84 {manifest['bounds_wgs84']} is not the "
-                         f"grid's {[round(v, 7) for v in wgs84]}; scene.json was edited by "
-                         "hand: re-create the package")
-
-
-#: How far (m) the recorded origin may sit from the centre of the recorded CRS.
-ORIGIN_TOL_M = 0.01
-
-
-def _check_origin(folder: Path, manifest: dict[str, Any], origin: LonLat) -> None:
-    # The flight frame is built from the origin, the pixels from the CRS: they must agree.
-    crs = parse_crs(manifest["crs_wkt2"])
-    try:
-        x, y = transformer(parse_crs("EPSG:4326"), crs).transform(origin.lon_deg,
-                                                                   origin.lat_deg)
-    except Exception as err:  # noqa: BLE001 - any projection failure is the same problem
-        raise SceneError(f"scene {folder}: the origin cannot be projected into its CRS "
-                         f"({err})") from err
-    off = math.hypot(x, y) if math.isfinite(x) and math.isfinite(y) else math.inf
-    if off > ORIGIN_TOL_M:
-        raise SceneError(
-            f"scene {folder}: origin {origin.lon_deg:.7f},{origin.lat_deg:.7f} is {off:.2f} m "
-            f"from the centre of crs_wkt2 (the local tmerc must be centred on the origin, "
-            "or the flight frame moves); re-create the package")
-
-
-_NUMBER = (int, float)
-_REQUIRED: dict[str, type | tuple[type, ...]] = {
-    "schema_version": int, "name": str, "crs_wkt2": str, "gsd_m": _NUMBER,
-    "transform": list, "width": int, "height": int, "bounds_m": list, "bounds_wgs84": list,
-    "origin": dict, "ortho": dict, "sources": list,
-}
-
-
-def _non_finite(value: Any, where: str) -> list[str]:
-    """Key paths of NaN/inf numbers anywhere in a parsed JSON value."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return [where]
-    if isinstance(value, dict):
-        return [p for k, v in value.items() for p in _non_finite(v, f"{where}.{k}")]
-    if isinstance(value, list):
-        return [p for i, v in enumerate(value) for p in _non_finite(v, f"{where}[{i}]")]
-    return []
-
-
-def _is_number(v: Any) -> bool:
-    return isinstance(v, _NUMBER) and not isinstance(v, bool)
-
-
-def _plain_file(v: Any) -> bool:
-    return isinstance(v, str) and bool(v) and "/" not in v and "\\" not in v and v not in (
-        ".", "..")
-
-
-def read_manifest(folder: Path) -> dict[str, Any]:
-    """Read and check ``scene.json``; SceneError lists every missing or mistyped field."""
-    path = folder / MANIFEST
-    if not path.is_file():
-        raise SceneError(f"{folder} has no {MANIFEST}; is it a scene package?")
-    try:
-        manifest = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise SceneError(f"{path} is not valid JSON ({err}); re-create the package") from err
-    except OSError as err:
-        raise SceneError(f"{path} cannot be read: {err.strerror or err}") from err
-    if not isinstance(manifest, dict):
-        raise SceneError(f"{path} must hold a JSON object")
-    problems = [f"{p.removeprefix('.')!r} is not a finite number"
-                for p in _non_finite(manifest, "")]
-    for key, typ in _REQUIRED.items():
-        if key not in manifest:
-            problems.append(f"missing {key!r}")
-        elif not isinstance(manifest[key], typ) or isinstance(manifest[key], bool):
-            problems.append(f"{key!r} has the wrong type ({type(manifest[key]).__name__})")
-    if not problems:
-        if manifest["schema_version"] != SCHEMA_VERSION:
-            problems.append(f"schema_version {manifest['schema_version']} is not "
-                            f"{SCHEMA_VERSION}; re-ingest with this geonav")
-        if not _plain_file(manifest["name"]):
-            problems.append(f"'name' {manifest['name']!r} must be a non-empty name without '/'")
-        for key, n in (("transform", 6), ("bounds_m", 4), ("bounds_wgs84", 4)):
-            if len(manifest[key]) != n or not all(map(_is_number, manifest[key])):
-                problems.append(f"{key!r} must have {n} coefficients" if key == "transform"
-                                else f"{key!r} must be a list of {n} numbers")
-        if manifest["gsd_m"] <= 0:
-            problems.append(f"'gsd_m' must be positive, is {manifest['gsd_m']}")
-        if manifest["width"] <= 0 or manifest["height"] <= 0:
-            problems.append("'width' and 'height' must be positive")
-        for key in ("lon_deg", "lat_deg", "alt_m"):
-            if not _is_number(manifest["origin"].get(key)):
-                problems.append(f"'origin.{key}' is missing or not a number")
-        if not _plain_file(manifest["ortho"].get("file")):
-            problems.append("'ortho.file' must be the name of a file in the package")
-        dsm = manifest.get("dsm")
-        if dsm is not None and not (isinstance(dsm, dict) and _plain_file(dsm.get("file"))):
-            problems.append("'dsm' must be null or an object whose 'file' names a file in "
-                            "the package")
-        try:
-            parse_crs(manifest["crs_wkt2"])
-        except Exception as err:  # noqa: BLE001 - reported as a problem below
-            problems.append(f"'crs_wkt2' is not a valid CRS ({err})")
-    if problems:
-        raise SceneError(f"{path} is invalid: " + "; ".join(problems))
-    return manifest
-
-
-# -- memory-mapped rasters (the loading side of Scene.open) --------------------------------
-CACHE_ENV = "GEONAV_CACHE_DIR"
-"""Environment variable: the folder for decoded rasters of every package (default: a
-``.geonav-cache`` folder inside each package, or ``$XDG_CACHE_HOME/geonav`` when the
-package is read-only). ``GEONAV_RASTER_CACHE=0`` turns the cache off: rasters are then
-decoded into each process's memory, as before (more memory per worker, no disk used)."""
-PACKAGE_CACHE = ".geonav-cache"
-
-
-def raster_cache_dir(folder: Path) -> Path:
-    """The folder that holds a package's decoded rasters (created if needed)."""
-    override = os.environ.get(CACHE_ENV)
-    if not override:
-        local = folder / PACKAGE_CACHE
-        try:
-            local.mkdir(exist_ok=True)
-            if os.access(local, os.W_OK):
-                return local
-        except OSError:
-            pass
-        base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "geonav"
-    else:
-        base = Path(override)
-    sub = base / "scenes" / hashlib.sha256(str(folder.resolve()).encode()).hexdigest()[:16]
-    sub.mkdir(parents=True, exist_ok=True)
-    return sub
-
-
-def file_key(path: Path) -> str:
-    """A short key that changes whenever the file at ``path`` is replaced or rewritten."""
-    st = path.stat()
-    return hashlib.sha256(f"{path.resolve()}|{st.st_size}|{st.st_mtime_ns}".encode()
-                          ).hexdigest()[:16]
-
-
-def cached_array(path: Path, build: Callable[[], np.ndarray]) -> np.ndarray:
-    """A read-only memory map of the ``.npy`` file at ``path``, written first from ``build()``.
-
-    The file is written to a temporary name and renamed, so processes that race on it
-    all map a whole file; older files of the same name stem with another key (the last
-    ``-`` part) are removed. When the folder cannot be written, the built array is
-    returned (read-only, in memory) and a warning logged.
-
-    Memory-mapped pages belong to the page cache: every process that maps the same
-    file shares them, which is what keeps vector-env workers light.
-    """
-    if os.environ.get("GEONAV_RASTER_CACHE") == "0":
-        arr = np.ascontiguousarray(build())
-        arr.flags.writeable = False
-        return arr
-    if path.is_file():
-        try:
-            return np.asarray(np.load(path, mmap_mode="r"))
-        except (OSError, ValueError) as err:  # truncated by a crash before the rename
-            log.warning("rebuilding the unreadable raster cache %s (%s)", path, err)
-    arr = np.ascontiguousarray(build())
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
-    try:
-        with open(tmp, "wb") as f:
-            np.save(f, arr)
-        os.replace(tmp, path)
-    except OSError as err:
-        tmp.unlink(missing_ok=True)
-        log.warning("cannot write the raster cache %s (%s); keeping it in memory", path, err)
-        arr.flags.writeable = False
-        return arr
-    stem = path.name.rsplit("-", 1)[0]
-    for old in path.parent.glob(f"{stem}-*.npy"):
-        if old != path and old.name.rsplit("-", 1)[0] == stem:
-            old.unlink(missing_ok=True)
-    return np.asarray(np.load(path, mmap_mode="r"))
-
-
-def mapped_ortho(path: Path, src: Any, sha256: str | None = None
-                 ) -> tuple[np.ndarray, np.ndarray]:
-    """The ortho's (H, W, 3) uint8 pixels and (H, W) bool mask as read-only memory maps.
-
-    Decoded from the open dataset ``src`` on first use into the package's raster cache
-    (:func:`raster_cache_dir`); later opens, in any process, only map the files. A
-    decode first checks the file against ``sha256`` (its manifest's), when given.
-    """
-    cache, key = raster_cache_dir(path.parent), file_key(path)
-
-    def decode() -> np.ndarray:
-        verify_sha256(path, sha256)
-        return np.moveaxis(src.read(), 0, 2)
-
-    rgb = cached_array(cache / f"{path.stem}.rgb-{key}.npy", decode)
-    mask = cached_array(cache / f"{path.stem}.mask-{key}.npy", lambda: src.dataset_mask() > 0)
-    return rgb, mask
-
-
-def mapped_dsm(path: Path, src: Any, sha256: str | None = None) -> np.ndarray:
-    """The DSM's (H, W) float32 metres as a read-only memory map (see :func:`mapped_ortho`)."""
-    cache, key = raster_cache_dir(path.parent), file_key(path)
-
-    def decode() -> np.ndarray:
-        verify_sha256(path, sha256)
-        return src.read(1).astype(np.float32)
-
-    return cached_array(cache / f"{path.stem}.dsm-{key}.npy", decode)
 
 
 _SHARED: weakref.WeakValueDictionary[tuple[str, int], Scene] = weakref.WeakValueDictionary()
