@@ -39,14 +39,18 @@ import numpy as np
 
 from geonav.errors import ConfigError
 from geonav.tiles.synth.campus import _campus
-from geonav.tiles.synth.common import (
+from geonav.tiles.synth.canvas import (
+    _Canvas,
+)
+from geonav.tiles.synth.finish import (
+    _finish,
+)
+from geonav.tiles.synth.palette import (
     _KIND_SALT,
     MAX_GSD_M,
     MAX_SIDE_PX,
     MIN_GSD_M,
     MIN_SIZE_M,
-    _Canvas,
-    _finish,
 )
 from geonav.tiles.synth.residential import _residential
 from geonav.tiles.synth.wild import _wild

@@ -6,37 +6,60 @@ import math
 
 import numpy as np
 
+from geonav.tiles.synth.canvas import (
+    _Canvas,
+    _Frame,
+)
 from geonav.tiles.synth.common import (
+    _bsp,
+    _car,
+    _flat_building,
+    _parking_lot,
+    _street_tree,
+    _tower_count,
+    _tower_heights,
+    _woodland,
+)
+from geonav.tiles.synth.palette import (
     _ASPHALT,
     _CONCRETE,
     _FLAT_ROOFS,
     CAMPUS_BUILDING_HEIGHT_M,
     Mat,
-    _bsp,
-    _Canvas,
-    _car,
-    _flat_building,
-    _Frame,
-    _parking_lot,
     _pick,
-    _street_tree,
-    _tower_count,
-    _tower_heights,
     _vary,
-    _woodland,
 )
+
+_ROAD_W = 8.0
+_SIDE_W = 2.5
 
 
 def _campus(c: _Canvas, rng: np.random.Generator) -> None:
     """Scene B: superblocks of buildings, quads, parking and sports, with roads between."""
-    size = c.size_m
     c.fill_all(_vary(rng, (100, 124, 62), 0.03), Mat.GRASS)
-    fr = _Frame(size / 2, size / 2, rng.uniform(-0.3, 0.3))
+    fr = _Frame(c.size_m / 2, c.size_m / 2, rng.uniform(-0.3, 0.3))
+    visible, corridors, uses, tower_of = _campus_layout(c, rng, fr)
+    _campus_roads(c, rng, fr, corridors)
+    for leaf in visible:
+        _campus_leaf(c, rng, fr, leaf, uses[id(leaf)], tower_of.get(id(leaf), []))
+    for rect, _ in corridors:
+        _campus_road_furniture(c, rng, fr, rect)
+
+
+def _campus_layout(
+    c: _Canvas, rng: np.random.Generator, fr: _Frame
+) -> tuple[
+    list[tuple[float, float, float, float]],
+    list[tuple[tuple[float, float, float, float], int]],
+    dict[int, str],
+    dict[int, list[float]],
+]:
+    """The superblocks in view, the road corridors between them, each block's use
+    (keyed by ``id(block)``) and the towers each block hosts."""
+    size = c.size_m
     ext = size * 0.72 + 40
-    road_w = 8.0
-    side_w = 2.5
     leaves, corridors = _bsp(
-        rng, (-ext, -ext, ext, ext), 240.0, lambda d: road_w + 2 * side_w + 4.0
+        rng, (-ext, -ext, ext, ext), 240.0, lambda d: _ROAD_W + 2 * _SIDE_W + 4.0
     )
 
     def centre_xy(rect: tuple[float, float, float, float]) -> tuple[float, float]:
@@ -73,14 +96,22 @@ def _campus(c: _Canvas, rng: np.random.Generator) -> None:
             "buildings" if uses[id(host)] not in ("buildings", "quad") else uses[id(host)]
         )
         tower_of.setdefault(id(host), []).append(h)
+    return visible, corridors, uses, tower_of
 
-    # Roads: sidewalks, then asphalt, then centre lines.
-    corr = [(rect, depth) for rect, depth in corridors]
+
+def _campus_roads(
+    c: _Canvas,
+    rng: np.random.Generator,
+    fr: _Frame,
+    corridors: list[tuple[tuple[float, float, float, float], int]],
+) -> None:
+    """Roads: sidewalks, then asphalt (centre lines come with the road furniture)."""
+    road_w, side_w = _ROAD_W, _SIDE_W
     for width, colour, mat in (
         (road_w + 2 * side_w, _CONCRETE, Mat.CONCRETE),
         (road_w, None, Mat.ASPHALT),
     ):
-        for (u0, v0, u1, v1), _ in corr:
+        for (u0, v0, u1, v1), _ in corridors:
             cu, cv = (u0 + u1) / 2, (v0 + v1) / 2
             col = colour or _vary(rng, _ASPHALT, 0.03)
             if u1 - u0 < v1 - v0:
@@ -96,54 +127,68 @@ def _campus(c: _Canvas, rng: np.random.Generator) -> None:
                     mat,
                 )
 
-    for leaf in visible:
-        use = uses[id(leaf)]
-        u0, v0, u1, v1 = leaf
-        if use == "buildings":
-            _campus_buildings(c, rng, fr, leaf, tower_of.get(id(leaf), []))
-        elif use == "quad":
-            _campus_quad(c, rng, fr, leaf, tower_of.get(id(leaf), []))
-        elif use == "parking":
-            _parking_lot(c, rng, fr, u0 + 4, v0 + 4, u1 - 4, v1 - 4)
-            for uu in np.arange(u0 + 8, u1 - 4, rng.uniform(10, 14)):
-                for vv in (v0 + 2.0, v1 - 2.0):
-                    _street_tree(c, rng, *fr.pt(float(uu), vv))
-        elif use == "sports":
-            _sports(c, rng, fr, leaf)
-        else:
-            _woodland(c, rng, fr, leaf)
 
+def _campus_leaf(
+    c: _Canvas,
+    rng: np.random.Generator,
+    fr: _Frame,
+    leaf: tuple[float, float, float, float],
+    use: str,
+    towers: list[float],
+) -> None:
+    """One superblock, drawn as its use says."""
+    u0, v0, u1, v1 = leaf
+    if use == "buildings":
+        _campus_buildings(c, rng, fr, leaf, towers)
+    elif use == "quad":
+        _campus_quad(c, rng, fr, leaf, towers)
+    elif use == "parking":
+        _parking_lot(c, rng, fr, u0 + 4, v0 + 4, u1 - 4, v1 - 4)
+        for uu in np.arange(u0 + 8, u1 - 4, rng.uniform(10, 14)):
+            for vv in (v0 + 2.0, v1 - 2.0):
+                _street_tree(c, rng, *fr.pt(float(uu), vv))
+    elif use == "sports":
+        _sports(c, rng, fr, leaf)
+    else:
+        _woodland(c, rng, fr, leaf)
+
+
+def _campus_road_furniture(
+    c: _Canvas, rng: np.random.Generator, fr: _Frame, rect: tuple[float, float, float, float]
+) -> None:
+    """A road's dashed yellow centre line, the trees along it and a few cars."""
+    road_w, side_w = _ROAD_W, _SIDE_W
     yellow = (210, 178, 72)
-    for (u0, v0, u1, v1), _ in corr:
-        cu, cv = (u0 + u1) / 2, (v0 + v1) / 2
-        along_v = u1 - u0 < v1 - v0
-        t0, t1 = (v0, v1) if along_v else (u0, u1)
-        t = t0 + 2.0
-        while t < t1 - 5.0:
-            seg = (
-                np.array([[cu, t], [cu, t + 3.0]])
-                if along_v
-                else np.array([[t, cv], [t + 3.0, cv]])
-            )
-            c.line(fr.pts(seg), 0.13, yellow, Mat.PAINT)
-            t += 8.0
-        spacing = rng.uniform(9.0, 13.0)
-        t = t0 + spacing / 2
-        while t < t1:
-            for off in (-(road_w / 2 + side_w + 1.2), road_w / 2 + side_w + 1.2):
-                uv = (cu + off, t) if along_v else (t, cv + off)
-                if rng.random() < 0.75:
-                    _street_tree(c, rng, *fr.pt(*uv))
-            t += spacing
-        p_car = rng.uniform(0.0, 0.08)
-        t = t0 + 3.0
-        while t < t1 - 3.0:
-            if rng.random() < p_car:
-                lane = road_w / 4 * (1 if rng.random() < 0.5 else -1)
-                uv = (cu + lane, t) if along_v else (t, cv + lane)
-                ang = fr.theta + (math.pi / 2 if along_v else 0.0) + (0.0 if lane > 0 else math.pi)
-                _car(c, rng, *fr.pt(*uv), ang)
-            t += 7.0
+    u0, v0, u1, v1 = rect
+    cu, cv = (u0 + u1) / 2, (v0 + v1) / 2
+    along_v = u1 - u0 < v1 - v0
+    t0, t1 = (v0, v1) if along_v else (u0, u1)
+    t = t0 + 2.0
+    while t < t1 - 5.0:
+        seg = (
+            np.array([[cu, t], [cu, t + 3.0]])
+            if along_v
+            else np.array([[t, cv], [t + 3.0, cv]])
+        )
+        c.line(fr.pts(seg), 0.13, yellow, Mat.PAINT)
+        t += 8.0
+    spacing = rng.uniform(9.0, 13.0)
+    t = t0 + spacing / 2
+    while t < t1:
+        for off in (-(road_w / 2 + side_w + 1.2), road_w / 2 + side_w + 1.2):
+            uv = (cu + off, t) if along_v else (t, cv + off)
+            if rng.random() < 0.75:
+                _street_tree(c, rng, *fr.pt(*uv))
+        t += spacing
+    p_car = rng.uniform(0.0, 0.08)
+    t = t0 + 3.0
+    while t < t1 - 3.0:
+        if rng.random() < p_car:
+            lane = road_w / 4 * (1 if rng.random() < 0.5 else -1)
+            uv = (cu + lane, t) if along_v else (t, cv + lane)
+            ang = fr.theta + (math.pi / 2 if along_v else 0.0) + (0.0 if lane > 0 else math.pi)
+            _car(c, rng, *fr.pt(*uv), ang)
+        t += 7.0
 
 
 def _campus_building_shape(

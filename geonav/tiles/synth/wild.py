@@ -7,7 +7,18 @@ import math
 import cv2
 import numpy as np
 
+from geonav.tiles.synth.canvas import (
+    _Canvas,
+    _Frame,
+    _rot_rect,
+)
 from geonav.tiles.synth.common import (
+    _bsp,
+)
+from geonav.tiles.synth.finish import (
+    _smooth_field,
+)
+from geonav.tiles.synth.palette import (
     _CONIFERS,
     _CROPS,
     _PITCHED_ROOFS,
@@ -16,12 +27,7 @@ from geonav.tiles.synth.common import (
     _WATER,
     WILD_TREE_HEIGHT_M,
     Mat,
-    _bsp,
-    _Canvas,
-    _Frame,
     _pick,
-    _rot_rect,
-    _smooth_field,
     _vary,
 )
 
