@@ -166,3 +166,9 @@ def _vary(
 def _pick(rng: np.random.Generator, options: Sequence[Colour]) -> Colour:
     """Uniform choice from a palette."""
     return options[int(rng.integers(len(options)))]
+
+# Street cross-section of the residential scene, metres.
+_LOCAL_ROAD_M = 8.0
+_ARTERIAL_ROAD_M = 13.0
+_VERGE_M = 1.8
+_SIDEWALK_M = 1.6
