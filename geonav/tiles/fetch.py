@@ -342,18 +342,7 @@ def fetch_tiles(
         FetchIncomplete: tiles still failing after their retries (rerun to resume).
         TileError: nothing useful: not one tile of the bbox is cached or downloaded.
     """
-    check_template(template)
-    if not attribution or not attribution.strip():
-        raise TileError("--attribution is required: state the provider and the licence or "
-                        "terms under which you may use these tiles offline")
-    if not 1 <= workers <= 16:
-        raise TileError(f"workers must be within 1..16, got {workers}")
-    if not (isinstance(timeout_s, (int, float)) and 0 < timeout_s < float("inf")):
-        raise TileError(f"timeout must be a positive number of seconds, got {timeout_s!r}")
-    if not (isinstance(retries, int) and retries >= 0):
-        raise TileError(f"retries must be an integer >= 0, got {retries!r}")
-    if not (isinstance(max_tiles, int) and max_tiles >= 1):
-        raise TileError(f"max_tiles must be an integer >= 1, got {max_tiles!r}")
+    _check_fetch_args(template, attribution, workers, timeout_s, retries, max_tiles)
     tiles = tiles_in_bbox(bbox_lonlat, zoom)
     if len(tiles) > max_tiles:
         raise TileError(f"bbox {tuple(bbox_lonlat)} at zoom {zoom} needs {len(tiles)} tiles, "
@@ -368,6 +357,44 @@ def fetch_tiles(
     known_missing = set() if retry_not_found else {
         tuple(t) for t in sidecar.get("not_found", {}).get(str(zoom), [])}
     result = FetchResult(str(cache), zoom, total=len(tiles))
+    todo = _to_download(cache, tiles, known_missing, result, verify)
+    run = _TileFetch(template, cache, subdomains, user_agent, timeout_s, retries, backoff_s,
+                     max_backoff_s, progress, result,
+                     missing=set(known_missing) & {(x, y) for _, x, y in tiles})
+    try:
+        run.download(todo, workers)
+    finally:
+        _save_sidecar(cache, sidecar, template=template, attribution=attribution,
+                      zoom=zoom, bbox_lonlat=bbox_lonlat, missing=run.missing,
+                      user_agent=user_agent, result=result)
+    if progress:
+        progress("fetch", 1.0)
+    _raise_unless_complete(run, bbox_lonlat, retry_not_found)
+    return result
+
+
+def _check_fetch_args(template: str, attribution: str, workers: int, timeout_s: float,
+                      retries: int, max_tiles: int) -> None:
+    """TileError for a bad template or setting of :func:`fetch_tiles`, before any request."""
+    check_template(template)
+    if not attribution or not attribution.strip():
+        raise TileError("--attribution is required: state the provider and the licence or "
+                        "terms under which you may use these tiles offline")
+    if not 1 <= workers <= 16:
+        raise TileError(f"workers must be within 1..16, got {workers}")
+    if not (isinstance(timeout_s, (int, float)) and 0 < timeout_s < float("inf")):
+        raise TileError(f"timeout must be a positive number of seconds, got {timeout_s!r}")
+    if not (isinstance(retries, int) and retries >= 0):
+        raise TileError(f"retries must be an integer >= 0, got {retries!r}")
+    if not (isinstance(max_tiles, int) and max_tiles >= 1):
+        raise TileError(f"max_tiles must be an integer >= 1, got {max_tiles!r}")
+
+
+def _to_download(cache: Path, tiles: list[tuple[int, int, int]],
+                 known_missing: set[tuple[int, int]], result: FetchResult,
+                 verify: bool) -> list[tuple[int, int, int]]:
+    """The tiles not yet cached nor known to be missing (counting those into ``result``),
+    after dropping bad cached tiles when ``verify``."""
     if verify:
         result.verified, bad = verify_cache(cache, tiles=tiles)
         result.invalid_removed = len(bad)
@@ -384,24 +411,64 @@ def fetch_tiles(
             todo.append((z, x, y))
     log.info("fetch: %d tiles, %d cached, %d known missing, %d to download", len(tiles),
              result.cached, result.not_found, len(todo))
-    lock = threading.Lock()
-    stop = threading.Event()
-    missing: set[tuple[int, int]] = set(known_missing) & {(x, y) for _, x, y in tiles}
-    refused: list[str] = []
+    return todo
 
-    def one(tile: tuple[int, int, int]) -> None:
-        z, x, y = tile
-        url = tile_url(template, z, x, y, subdomains)
-        outcome, detail, size, tries = "failed", "", 0, 0
-        for attempt in range(retries + 1):
-            if stop.is_set():
-                return
-            tries = attempt
-            wait = min(max_backoff_s, backoff_s * 2 ** attempt)
+
+@dataclass
+class _TileFetch:
+    """One :func:`fetch_tiles` download: its settings, and the state its worker threads
+    share (``result``, ``missing``, ``refused``; updated under ``lock``)."""
+
+    template: str
+    cache: Path
+    subdomains: Sequence[str]
+    user_agent: str
+    timeout_s: float
+    retries: int
+    backoff_s: float
+    max_backoff_s: float
+    progress: Progress | None
+    result: FetchResult
+    missing: set[tuple[int, int]]
+    refused: list[str] = field(default_factory=list)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+    stop: threading.Event = field(default_factory=threading.Event)
+
+    def download(self, todo: list[tuple[int, int, int]], workers: int) -> None:
+        """Fetch ``todo`` on ``workers`` threads; Ctrl-C or a failing callback stops them."""
+        with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="geonav-fetch") as pool:
+            futures = [pool.submit(self.one, t) for t in todo]
             try:
-                status, body, headers = _get(url, user_agent=user_agent, timeout_s=timeout_s)
+                for future in futures:
+                    future.result()
+            except BaseException:
+                self.stop.set()  # Ctrl-C or a failing callback: finish no new tiles
+                for future in futures:
+                    future.cancel()
+                raise
+
+    def one(self, tile: tuple[int, int, int]) -> None:
+        """Fetch one tile with its retries and record the outcome (nothing once stopped)."""
+        attempt = self._attempts(tile)
+        if attempt is not None:
+            self._record(tile, *attempt)
+
+    def _attempts(self, tile: tuple[int, int, int]) -> tuple[str, str, int, int] | None:
+        """(outcome, detail, bytes, retries used) of one tile's requests: "ok", "missing"
+        (404/204), "refused" (401/403) or "failed"; None when the run was stopped."""
+        z, x, y = tile
+        url = tile_url(self.template, z, x, y, self.subdomains)
+        outcome, detail, size, tries = "failed", "", 0, 0
+        for attempt in range(self.retries + 1):
+            if self.stop.is_set():
+                return None
+            tries = attempt
+            wait = min(self.max_backoff_s, self.backoff_s * 2 ** attempt)
+            try:
+                status, body, headers = _get(url, user_agent=self.user_agent,
+                                             timeout_s=self.timeout_s)
             except TimeoutError as err:
-                detail = f"timeout ({err or timeout_s})"
+                detail = f"timeout ({err or self.timeout_s})"
             except BadBody as err:
                 detail = f"bad body ({err})"
             except urllib.error.URLError as err:
@@ -419,74 +486,69 @@ def fetch_tiles(
                     detail = f"HTTP {status}"
                     retry_after = headers.get("Retry-After", "")
                     if retry_after.strip().isdigit():
-                        wait = min(max_backoff_s, float(retry_after))
+                        wait = min(self.max_backoff_s, float(retry_after))
                 elif status == 200:
                     try:
                         fmt = check_tile_bytes(body)
                     except BadBody as err:  # junk or a truncated image: ask again
                         detail = f"bad body ({err})"
                     else:
-                        _write_atomic(tile_path(cache, z, x, y, fmt), body)
+                        _write_atomic(tile_path(self.cache, z, x, y, fmt), body)
                         outcome, size = "ok", len(body)
                         break
                 else:
                     outcome, detail = "failed", f"HTTP {status}"
                     break
-            if attempt < retries and stop.wait(wait):
-                return
-        with lock:
+            if attempt < self.retries and self.stop.wait(wait):
+                return None
+        return outcome, detail, size, tries
+
+    def _record(self, tile: tuple[int, int, int], outcome: str, detail: str, size: int,
+                tries: int) -> None:
+        z, x, y = tile
+        result = self.result
+        with self.lock:
             result.retries += tries
             if outcome == "ok":
                 result.downloaded += 1
                 result.bytes += size
             elif outcome == "missing":
                 result.not_found += 1
-                missing.add((x, y))
+                self.missing.add((x, y))
             else:
                 result.failed += 1
                 if len(result.failures) < 10:
                     result.failures.append(f"{z}/{x}/{y}: {detail}")
                 if outcome == "refused":
-                    refused.append(detail)
-                    stop.set()
+                    self.refused.append(detail)
+                    self.stop.set()
             done = result.downloaded + result.not_found + result.failed
-            if progress:
-                progress("fetch", (result.cached + done) / max(1, len(tiles)))
+            if self.progress:
+                self.progress("fetch", (result.cached + done) / max(1, result.total))
             if outcome != "ok":
                 log.debug("tile %d/%d/%d: %s %s", z, x, y, outcome, detail)
 
-    try:
-        with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="geonav-fetch") as pool:
-            futures = [pool.submit(one, t) for t in todo]
-            try:
-                for future in futures:
-                    future.result()
-            except BaseException:
-                stop.set()  # Ctrl-C or a failing callback: finish no new tiles
-                for future in futures:
-                    future.cancel()
-                raise
-    finally:
-        _save_sidecar(cache, sidecar, template=template, attribution=attribution,
-                      zoom=zoom, bbox_lonlat=bbox_lonlat, missing=missing,
-                      user_agent=user_agent, result=result)
-    if progress:
-        progress("fetch", 1.0)
-    if refused:
-        raise TileError(f"the tile server refused access ({refused[0]}) at {redact(template)}; "
-                        f"stopped after {result.downloaded} new tiles. Check the key/terms")
+
+def _raise_unless_complete(run: _TileFetch, bbox_lonlat: Sequence[float],
+                           retry_not_found: bool) -> None:
+    """TileError when the server refused access or nothing at all was fetched;
+    FetchIncomplete when tiles still failed after their retries."""
+    result, template = run.result, run.template
+    if run.refused:
+        raise TileError(f"the tile server refused access ({run.refused[0]}) at "
+                        f"{redact(template)}; stopped after {result.downloaded} new tiles. "
+                        "Check the key/terms")
     if result.failed:
         raise FetchIncomplete(
-            f"{result.failed} of {len(tiles)} tiles failed after {retries} retries "
+            f"{result.failed} of {result.total} tiles failed after {run.retries} retries "
             f"(e.g. {result.failures[0]}); {result.cached + result.downloaded} are cached in "
-            f"{cache}; rerun the same command to resume", result)
+            f"{run.cache}; rerun the same command to resume", result)
     if result.cached + result.downloaded == 0:
         raise TileError(
-            f"nothing fetched: all {len(tiles)} tiles of bbox {tuple(bbox_lonlat)} at zoom "
-            f"{zoom} are missing on the server (404/204) at {redact(template)}; check the "
-            "URL template, the zoom and the bbox (lon first)"
+            f"nothing fetched: all {result.total} tiles of bbox {tuple(bbox_lonlat)} at zoom "
+            f"{result.zoom} are missing on the server (404/204) at {redact(template)}; check "
+            "the URL template, the zoom and the bbox (lon first)"
             + ("" if retry_not_found else ", or pass --retry-missing"))
-    return result
 
 
 def _load_sidecar(cache: Path) -> dict[str, Any]:
