@@ -96,16 +96,7 @@ def read_mbtiles(
         scheme = meta.get("scheme", "tms").strip().lower()
         if scheme not in ("tms", "xyz"):
             raise TileError(f"{path}: metadata scheme {scheme!r} is neither 'tms' nor 'xyz'")
-        try:
-            zooms = [int(r[0]) for r in con.execute(
-                "SELECT DISTINCT zoom_level FROM tiles WHERE zoom_level BETWEEN 0 AND ?",
-                (MAX_ZOOM,))]
-        except sqlite3.DatabaseError as err:
-            raise TileError(f"{path} has no readable 'tiles' table ({err}); is it an "
-                            "MBTiles file?") from err
-        if not zooms:
-            raise TileError(f"{path} holds no tiles")
-        z = choose_zoom(zooms, zoom, str(path))
+        z = choose_zoom(_zoom_levels(con, path), zoom, str(path))
         n = 1 << z
         rows = con.execute(
             "SELECT tile_column, tile_row FROM tiles WHERE zoom_level = ?", (z,)).fetchall()
@@ -123,27 +114,7 @@ def read_mbtiles(
                     f"so reading them as {other.upper()}. Fix the file with a metadata row "
                     f"scheme={other}", GeonavWarning, stacklevel=2)
                 scheme = other
-        refs = []
-        skipped = 0
-        for col, row in rows:
-            # Only integer indices inside the zoom's range make it into a mosaic.
-            if not (isinstance(col, int) and isinstance(row, int) and 0 <= col < n
-                    and 0 <= row < n):
-                skipped += 1
-                continue
-            y = flip_y(z, row) if scheme == "tms" else row
-
-            def read(col: int = col, row: int = row) -> bytes:
-                got = con.execute(
-                    "SELECT tile_data FROM tiles WHERE zoom_level = ? AND tile_column = ? "
-                    "AND tile_row = ?", (z, col, row)).fetchone()
-                if got is None or not isinstance(got[0], (bytes, memoryview)):
-                    raise ValueError("no tile data")
-                return bytes(got[0])
-
-            refs.append(TileRef(col, y, f"z{z} column {col} row {row}", read))
-        if skipped:
-            log.warning("%s: ignored %d tiles with indices outside zoom %d", path, skipped, z)
+        refs = _tile_refs(con, path, z, rows, scheme)
         # sqlite3 connections serialise their calls; one decoding thread is enough
         # to overlap reads with decoding.
         data, mask, transform, stats, digest = build_mosaic(
@@ -158,3 +129,47 @@ def read_mbtiles(
         if meta.get(key):
             info[f"mbtiles_{key}" if key != "attribution" else key] = meta[key]
     return RasterSource(data, CRS.from_epsg(3857), transform, mask, info)
+
+
+def _zoom_levels(con: sqlite3.Connection, path: Path) -> list[int]:
+    """The zoom levels (0..MAX_ZOOM) the file's ``tiles`` table holds; TileError when it has
+    none or no readable table."""
+    try:
+        zooms = [int(r[0]) for r in con.execute(
+            "SELECT DISTINCT zoom_level FROM tiles WHERE zoom_level BETWEEN 0 AND ?",
+            (MAX_ZOOM,))]
+    except sqlite3.DatabaseError as err:
+        raise TileError(f"{path} has no readable 'tiles' table ({err}); is it an "
+                        "MBTiles file?") from err
+    if not zooms:
+        raise TileError(f"{path} holds no tiles")
+    return zooms
+
+
+def _tile_refs(con: sqlite3.Connection, path: Path, z: int, rows: list[Any],
+               scheme: str) -> list[TileRef]:
+    """A lazy reader per (column, row) of zoom ``z``, rows turned to XYZ from ``scheme``;
+    indices that are not integers inside the zoom's range are left out (and logged)."""
+    n = 1 << z
+    refs = []
+    skipped = 0
+    for col, row in rows:
+        # Only integer indices inside the zoom's range make it into a mosaic.
+        if not (isinstance(col, int) and isinstance(row, int) and 0 <= col < n
+                and 0 <= row < n):
+            skipped += 1
+            continue
+        y = flip_y(z, row) if scheme == "tms" else row
+
+        def read(col: int = col, row: int = row) -> bytes:
+            got = con.execute(
+                "SELECT tile_data FROM tiles WHERE zoom_level = ? AND tile_column = ? "
+                "AND tile_row = ?", (z, col, row)).fetchone()
+            if got is None or not isinstance(got[0], (bytes, memoryview)):
+                raise ValueError("no tile data")
+            return bytes(got[0])
+
+        refs.append(TileRef(col, y, f"z{z} column {col} row {row}", read))
+    if skipped:
+        log.warning("%s: ignored %d tiles with indices outside zoom %d", path, skipped, z)
+    return refs

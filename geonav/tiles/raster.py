@@ -269,20 +269,7 @@ def open_raster(
         raise IngestError(f"{path} does not exist")
     try:
         with rasterio.open(path) as src:
-            gcps, gcp_crs = src.gcps
-            if src.crs is None and gcps:
-                raise MissingCRS(
-                    f"{path} is georeferenced by {len(gcps)} ground control points, not a "
-                    f"geotransform; warp it onto a grid first, e.g. 'gdalwarp -r bilinear "
-                    f"{path.name} warped.tif'")
-            if src.crs is None:
-                raise MissingCRS(
-                    f"{path} has no CRS; assign one first, e.g. "
-                    f"'gdal_edit.py -a_srs EPSG:xxxx {path.name}'")
-            if src.transform == Affine.identity():
-                raise MissingCRS(f"{path} has no geotransform; it is not georeferenced")
-            if src.transform.b or src.transform.d:
-                log.info("%s has a rotated geotransform; it is warped north-up", path)
+            _check_georeferenced(src, path)
             window = _window_for(src, bbox_lonlat, path)
             step = _decimation(src, window, target_gsd_m) if bands == 3 else 1
             out_h = max(1, math.ceil(window.height / step))
@@ -311,15 +298,8 @@ def open_raster(
                     data = np.repeat(data, 3, axis=0)
                 info_bands = indexes
             else:
-                check_height_raster(src, path, height_units)
-                check_budget(out_h * out_w * 4 * 3, memory_budget_mb,
-                             f"reading {path.name} ({out_w}x{out_h} px)")
-                read["out_shape"] = (1, out_h, out_w)
-                data = src.read([1], **read).astype(np.float32)
-                valid = _valid_mask(src, window, (out_h, out_w), band=1)
-                valid &= np.isfinite(data[0])
-                data[0][~valid] = np.nan
-                mask = valid
+                data, mask = _read_heights(src, path, read, (out_h, out_w), memory_budget_mb,
+                                           height_units)
                 info_bands = [1]
             info = dict(file=path.name, path=str(path.resolve()), sha256=sha256_file(path),
                         crs=parse_crs(src.crs.to_wkt()).to_wkt(), size_px=[src.width, src.height],
@@ -337,6 +317,42 @@ def open_raster(
     except MemoryError as err:
         raise IngestError(f"{path} does not fit in memory; cut it with --bbox or use a "
                           "coarser --gsd") from err
+
+
+def _check_georeferenced(src: Any, path: Path) -> None:
+    """MissingCRS for a raster without a CRS or geotransform (ground control points only,
+    or nothing); a rotated geotransform is logged (it is warped north-up)."""
+    gcps, _gcp_crs = src.gcps
+    if src.crs is None and gcps:
+        raise MissingCRS(
+            f"{path} is georeferenced by {len(gcps)} ground control points, not a "
+            f"geotransform; warp it onto a grid first, e.g. 'gdalwarp -r bilinear "
+            f"{path.name} warped.tif'")
+    if src.crs is None:
+        raise MissingCRS(
+            f"{path} has no CRS; assign one first, e.g. "
+            f"'gdal_edit.py -a_srs EPSG:xxxx {path.name}'")
+    if src.transform == Affine.identity():
+        raise MissingCRS(f"{path} has no geotransform; it is not georeferenced")
+    if src.transform.b or src.transform.d:
+        log.info("%s has a rotated geotransform; it is warped north-up", path)
+
+
+def _read_heights(src: Any, path: Path, read: dict[str, Any], shape: tuple[int, int],
+                  memory_budget_mb: float | None, height_units: str | None
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """(1, H, W) float32 heights (NaN where invalid) and their (H, W) validity of band 1,
+    read with ``read``'s window and resampling at ``shape``."""
+    out_h, out_w = shape
+    check_height_raster(src, path, height_units)
+    check_budget(out_h * out_w * 4 * 3, memory_budget_mb,
+                 f"reading {path.name} ({out_w}x{out_h} px)")
+    read["out_shape"] = (1, out_h, out_w)
+    data = src.read([1], **read).astype(np.float32)
+    valid = _valid_mask(src, read["window"], (out_h, out_w), band=1)
+    valid &= np.isfinite(data[0])
+    data[0][~valid] = np.nan
+    return data, valid
 
 
 def _valid_mask(src: Any, window: Any, shape: tuple[int, int],

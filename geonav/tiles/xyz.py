@@ -220,34 +220,14 @@ def build_mosaic(
     Raises:
         TileError: no tiles, no decodable tile, or a bbox that misses every tile.
     """
-    from affine import Affine
-    from morecantile import Tile
-
     if not refs:
         raise TileError(f"{where} holds no image tiles at zoom {z}")
     stats = MosaicStats()
     if bbox_lonlat is not None:
-        bx0, by0, bx1, by1 = tile_range_for_bbox(bbox_lonlat, z)
-        inside = [r for r in refs if bx0 <= r.x <= bx1 and by0 <= r.y <= by1]
-        stats.outside = len(refs) - len(inside)
-        if not inside:
-            xs, ys = [r.x for r in refs], [r.y for r in refs]
-            raise TileError(
-                f"bbox {tuple(bbox_lonlat)} misses the tiles of {where}: zoom {z} has x "
-                f"{min(xs)}..{max(xs)}, y {min(ys)}..{max(ys)}, the bbox needs x {bx0}..{bx1}, "
-                f"y {by0}..{by1}")
-        refs = inside
+        refs = _refs_in_bbox(refs, bbox_lonlat, z, where, stats)
     x0, x1 = min(r.x for r in refs), max(r.x for r in refs)
     y0, y1 = min(r.y for r in refs), max(r.y for r in refs)
     nx, ny = x1 - x0 + 1, y1 - y0 + 1
-
-    def load(ref: TileRef):
-        try:
-            raw = ref.read()
-            rgb, alpha = decode_tile(raw)
-            return ref, rgb, alpha, hashlib.sha256(raw).hexdigest(), None
-        except (OSError, ValueError) as err:
-            return ref, None, None, None, str(err)
 
     data = mask = None
     tile_px = 0
@@ -255,7 +235,7 @@ def build_mosaic(
     corrupt: list[str] = []
     done = 0
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:  # cv2 decodes without the GIL
-        for ref, rgb, alpha, digest, error in pool.map(load, refs):
+        for ref, rgb, alpha, digest, error in pool.map(_load_tile, refs):
             done += 1
             if progress and (done % 32 == 0 or done == len(refs)):
                 progress("tiles", done / len(refs))
@@ -299,14 +279,52 @@ def build_mosaic(
     if stats.missing:
         log.info("%s: %d tiles missing inside the %dx%d tile rectangle (masked)", where,
                  stats.missing, nx, ny)
-    tms = web_mercator_tms()
-    ul = tms.xy_bounds(Tile(x0, y0, z))
+    return data, mask, _mosaic_transform(z, x0, y0, tile_px), stats, _mosaic_digest(z, digests)
+
+
+def _refs_in_bbox(refs: Sequence[TileRef], bbox_lonlat: Sequence[float], z: int, where: str,
+                  stats: MosaicStats) -> list[TileRef]:
+    """The tiles inside a lon/lat bbox (those outside counted in ``stats.outside``);
+    TileError when it misses them all."""
+    bx0, by0, bx1, by1 = tile_range_for_bbox(bbox_lonlat, z)
+    inside = [r for r in refs if bx0 <= r.x <= bx1 and by0 <= r.y <= by1]
+    stats.outside = len(refs) - len(inside)
+    if not inside:
+        xs, ys = [r.x for r in refs], [r.y for r in refs]
+        raise TileError(
+            f"bbox {tuple(bbox_lonlat)} misses the tiles of {where}: zoom {z} has x "
+            f"{min(xs)}..{max(xs)}, y {min(ys)}..{max(ys)}, the bbox needs x {bx0}..{bx1}, "
+            f"y {by0}..{by1}")
+    return inside
+
+
+def _load_tile(ref: TileRef) -> tuple[TileRef, Any, Any, str | None, str | None]:
+    """(ref, rgb, alpha, sha256 of the bytes, None) of a decoded tile, or (ref, None, None,
+    None, why) when it cannot be read or decoded."""
+    try:
+        raw = ref.read()
+        rgb, alpha = decode_tile(raw)
+        return ref, rgb, alpha, hashlib.sha256(raw).hexdigest(), None
+    except (OSError, ValueError) as err:
+        return ref, None, None, None, str(err)
+
+
+def _mosaic_transform(z: int, x0: int, y0: int, tile_px: int) -> Any:
+    """EPSG:3857 affine transform of a mosaic whose upper-left tile is (x0, y0) at zoom z."""
+    from affine import Affine
+    from morecantile import Tile
+
+    ul = web_mercator_tms().xy_bounds(Tile(x0, y0, z))
     res = (ul.right - ul.left) / tile_px
-    transform = Affine(res, 0.0, ul.left, 0.0, -res, ul.top)
+    return Affine(res, 0.0, ul.left, 0.0, -res, ul.top)
+
+
+def _mosaic_digest(z: int, digests: list[tuple[int, int, str]]) -> str:
+    """sha256 over the placed tiles' indices and bytes (in index order)."""
     h = hashlib.sha256()
     for x, y, digest in sorted(digests):
         h.update(f"{z}/{x}/{y}:{digest}\n".encode())
-    return data, mask, transform, stats, h.hexdigest()
+    return h.hexdigest()
 
 
 def mosaic_info(kind: str, where: Path, z: int, transform, shape: tuple[int, int],
