@@ -55,13 +55,7 @@ def draw_scene(
     camera = camera or (tasks.camera if isinstance(tasks, TaskSet) else Camera())
     task_list = list(tasks.tasks if isinstance(tasks, TaskSet) else (tasks or []))
     sx0, sy0, sx1, sy1 = scene.bounds_m
-    if bounds_m is None:
-        xmin, ymin, xmax, ymax = sx0, sy0, sx1, sy1
-    else:
-        xmin, ymin = max(bounds_m[0], sx0), max(bounds_m[1], sy0)
-        xmax, ymax = min(bounds_m[2], sx1), min(bounds_m[3], sy1)
-        if xmax <= xmin or ymax <= ymin:
-            raise ValueError(f"bounds_m {bounds_m} do not overlap the scene {scene.bounds_m}")
+    xmin, ymin, xmax, ymax = _shown_bounds(scene, bounds_m)
     # Pixel window of the shown part (row 0 is the north edge).
     c0 = int(np.floor((xmin - sx0) / scene.gsd_m))
     c1 = int(np.ceil((xmax - sx0) / scene.gsd_m))
@@ -88,19 +82,7 @@ def draw_scene(
         tgt = task.lattice.center(task.target_cell)
         ax.plot(tgt.x_m, tgt.y_m, marker="*", ms=11, mec="black", mfc=colour)
         ax.text(x0, y1, f" {task.name}", color=colour, fontsize=7, va="bottom", clip_on=True)
-    centre = (task_list[0].lattice.center(task_list[0].target_cell) if task_list
-              else None)
-    cx, cy = (centre.x_m, centre.y_m) if centre else ((xmin + xmax) / 2, (ymin + ymax) / 2)
-    for alt, style in zip(footprints_at, ("-", "--", "-.", ":"), strict=False):
-        side = camera.footprint_m(alt)
-        ax.add_patch(Rectangle((cx - side / 2, cy - side / 2), side, side, fill=False,
-                               ls=style, lw=1.0, ec="white"))
-        # Labels stay inside the axes (a footprint wider than a small scene would put its
-        # label outside, and tight_layout would then squash the picture to make room).
-        lx = min(max(cx - side / 2, xmin), xmax)
-        ly = min(cy + side / 2, ymax)
-        ax.text(lx, ly, f"{alt:g} m view", color="white", fontsize=7,
-                va="bottom" if ly < ymax else "top", clip_on=True)
+    _draw_footprints(ax, camera, footprints_at, task_list, (xmin, ymin, xmax, ymax))
     for task, cells, label in tracks:
         pts = np.array([[task.lattice.center(c).x_m, task.lattice.center(c).y_m] for c in cells])
         if len(pts):
@@ -119,6 +101,42 @@ def draw_scene(
         return save_figure(fig, out)
     finally:
         plt.close(fig)
+
+
+def _shown_bounds(scene: Scene, bounds_m: tuple[float, float, float, float] | None
+                  ) -> tuple[float, float, float, float]:
+    """The part of the scene to draw (scene metres): ``bounds_m`` clipped to the scene, or
+    all of it; ValueError when they do not overlap."""
+    sx0, sy0, sx1, sy1 = scene.bounds_m
+    if bounds_m is None:
+        return sx0, sy0, sx1, sy1
+    xmin, ymin = max(bounds_m[0], sx0), max(bounds_m[1], sy0)
+    xmax, ymax = min(bounds_m[2], sx1), min(bounds_m[3], sy1)
+    if xmax <= xmin or ymax <= ymin:
+        raise ValueError(f"bounds_m {bounds_m} do not overlap the scene {scene.bounds_m}")
+    return xmin, ymin, xmax, ymax
+
+
+def _draw_footprints(ax: Any, camera: Camera, footprints_at: Sequence[float],
+                     task_list: list[NavTask], shown: tuple[float, float, float, float]) -> None:
+    """Camera footprints at each altitude around the first task's target (or the centre
+    of what is shown), labelled inside the axes."""
+    from matplotlib.patches import Rectangle
+
+    xmin, ymin, xmax, ymax = shown
+    centre = (task_list[0].lattice.center(task_list[0].target_cell) if task_list
+              else None)
+    cx, cy = (centre.x_m, centre.y_m) if centre else ((xmin + xmax) / 2, (ymin + ymax) / 2)
+    for alt, style in zip(footprints_at, ("-", "--", "-.", ":"), strict=False):
+        side = camera.footprint_m(alt)
+        ax.add_patch(Rectangle((cx - side / 2, cy - side / 2), side, side, fill=False,
+                               ls=style, lw=1.0, ec="white"))
+        # Labels stay inside the axes (a footprint wider than a small scene would put its
+        # label outside, and tight_layout would then squash the picture to make room).
+        lx = min(max(cx - side / 2, xmin), xmax)
+        ly = min(cy + side / 2, ymax)
+        ax.text(lx, ly, f"{alt:g} m view", color="white", fontsize=7,
+                va="bottom" if ly < ymax else "top", clip_on=True)
 
 
 def save_figure(fig: Any, out: str | os.PathLike[str]) -> Path:
