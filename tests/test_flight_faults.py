@@ -22,6 +22,7 @@ from flight_helpers import META, START, TARGET
 from geonav.errors import ConfigError, FlightTimeout
 from geonav.mavlink_bridge import modes as M
 from geonav.mavlink_bridge._mav import mavutil
+from geonav.mavlink_bridge.backends import open_vehicle
 from geonav.mavlink_bridge.emulator import Emulator, EmulatorConfig
 from geonav.mavlink_bridge.flight import (
     FlightConfig,
@@ -33,7 +34,6 @@ from geonav.mavlink_bridge.flight import (
 )
 from geonav.mavlink_bridge.record import read_record
 from geonav.mavlink_bridge.sequence import Timeouts
-from geonav.mavlink_bridge.vehicle import open_vehicle
 from geonav.scene import Scene
 from geonav.tasks import Lattice
 from geonav.testing import textured_scene

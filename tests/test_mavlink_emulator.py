@@ -12,8 +12,8 @@ import pytest
 
 from geonav.errors import CheckpointError, FlightError
 from geonav.mavlink_bridge import modes as M
+from geonav.mavlink_bridge.backends import open_vehicle
 from geonav.mavlink_bridge.emulator import Emulator, EmulatorConfig
-from geonav.mavlink_bridge.vehicle import open_vehicle
 
 
 def _vehicle(emu: Emulator):

@@ -12,11 +12,11 @@ import pytest
 from flight_helpers import FAST, META, START, TARGET
 
 from geonav.mavlink_bridge import modes as M
+from geonav.mavlink_bridge.backends import open_vehicle
 from geonav.mavlink_bridge.emulator import Emulator, EmulatorConfig
 from geonav.mavlink_bridge.flight import FlightConfig, ScriptedPolicy, path_actions, run_flight
 from geonav.mavlink_bridge.record import read_record
 from geonav.mavlink_bridge.sequence import Timeouts
-from geonav.mavlink_bridge.vehicle import open_vehicle
 from geonav.tasks import Lattice
 from geonav.testing import textured_scene
 

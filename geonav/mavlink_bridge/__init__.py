@@ -1,9 +1,21 @@
 """Fly a geonav policy on PX4 or ArduPilot over MAVLink (pymavlink or MAVSDK backends).
 
-Import the submodules you need; nothing heavy is imported here:
-``vehicle`` (the Vehicle protocol and connection strings), ``pymavlink_backend``,
-``mavsdk_backend``, ``conversion``, ``frames`` (each autopilot's lon/lat <-> NED
-formula), ``safety``, ``pump``, ``sequence``,
-``flight`` (the loop and :func:`geonav.mavlink_bridge.flight.fly`), ``emulator``
-(a MAVLink vehicle emulator for tests and dry runs) and ``cli``.
+Import the submodules you need; nothing heavy is imported here. Arrows point down:
+
+* ``flight`` (:func:`geonav.mavlink_bridge.flight.fly`, ``run_flight``: the driver and
+  the only module that touches ``geonav.policy``) over the phases ``preflight``,
+  ``autonomy`` (take-off, positioning, the step loop) and ``ending`` (end action,
+  record), which share a ``context.FlightContext``; ``plan`` (settings and the plan
+  checked before connecting), ``outcome`` (outcome words, exit codes, the result),
+  ``signals``;
+* ``sequence`` (gated phases on a vehicle: ready, position, mode, arm, take-off, land),
+  ``pump`` (the setpoint stream), ``safety`` (fence, watchdogs), ``conversion`` and
+  ``frames`` (scene -> lon/lat -> each autopilot's NED), ``camera_source``, ``record``;
+* ``backends`` (``open_vehicle``: the factory) over ``pymavlink_backend`` and
+  ``mavsdk_backend``, which share ``backend_common``, over ``vehicle`` (the
+  ``Vehicle`` protocol, ``VehicleState``, connection strings) and ``modes``;
+* ``emulator`` (a MAVLink vehicle emulator for tests and dry runs) over its parts
+  ``emulator_config``, ``emulator_link``, ``emulator_physics``, ``emulator_messages``
+  and ``emulator_handlers``;
+* ``cli`` (``geonav fly``, ``geonav emulator``).
 """

@@ -46,7 +46,8 @@ from typing import Any, TypeVar
 from geonav.errors import CommandRejected, FlightError, FlightTimeout
 from geonav.geo import LocalNED, LonLat
 from geonav.mavlink_bridge import modes as M
-from geonav.mavlink_bridge.vehicle import Connection, VehicleState
+from geonav.mavlink_bridge.backend_common import Heartbeat, LinkState
+from geonav.mavlink_bridge.vehicle import Connection
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -164,7 +165,7 @@ EXECUTOR_DRAIN_S = 10.0
 time out within a few seconds) before MAVSDK is destroyed."""
 
 
-class MavsdkVehicle:
+class MavsdkVehicle(LinkState):
     """A Vehicle over native MAVSDK.
 
     Args:
@@ -180,29 +181,17 @@ class MavsdkVehicle:
         system_id: int | None = None,
         use_offboard_plugin: bool = False,
     ) -> None:
-        self.conn = conn
-        self.autopilot = ""
-        self.on_statustext: Callable[[int, str], None] | None = None
-        self._want_sysid = system_id
+        super().__init__(conn, system_id)
         self._use_offboard = use_offboard_plugin
         self._loop = asyncio.new_event_loop()
         self._thread = threading.Thread(
             target=self._loop.run_forever, name="mavsdk-loop", daemon=True
         )
-        self._lock = threading.Lock()
         self._tasks: list[asyncio.Task[Any]] = []
         self._mav: Any = None
         self._sys: Any = None
         self._sysid = 0
-        self._hb: dict[str, Any] | None = None
-        self._hb_t = -math.inf
-        self._pos: LocalNED | None = None
-        self._vel: tuple[float, float, float] | None = None
-        self._pos_t = -math.inf
-        self._origin: LonLat | None = None
-        self._home: LonLat | None = None
-        self._landed = 0
-        self._texts: collections.deque[tuple[float, str]] = collections.deque(maxlen=20)
+        self._hb_autopilot: int | None = None
         self._closed = False
         self._offboard_streaming = False
 
@@ -283,8 +272,8 @@ class MavsdkVehicle:
                     "MAVSDK saw the autopilot but no HEARTBEAT from its component 1"
                 )
             time.sleep(0.02)
-        if not self.autopilot:
-            self.autopilot = M.flavour_from_heartbeat(int(self._hb["autopilot"]))
+        if not self.autopilot and self._hb_autopilot is not None:
+            self.autopilot = M.flavour_from_heartbeat(self._hb_autopilot)
         log.info(
             "MAVSDK connected to %s autopilot sysid %d on %s",
             self.autopilot,
@@ -310,37 +299,31 @@ class MavsdkVehicle:
             fields = json.loads(msg.fields_json)
             if fields.get("autopilot") == M.MAV_AUTOPILOT_INVALID:
                 continue
-            with self._lock:
-                self._hb = fields
-                self._hb_t = time.monotonic()
+            self._hb_autopilot = int(fields["autopilot"])
+            self._on_heartbeat(Heartbeat(int(fields["system_status"]), int(fields["custom_mode"]),
+                                         int(fields["base_mode"])))
 
     async def _watch_position(self) -> None:
         async for pv in self._telemetry.subscribe_position_velocity_ned():
-            with self._lock:
-                p, v = pv.position, pv.velocity
-                self._pos = LocalNED(p.north_m, p.east_m, p.down_m)
-                self._vel = (v.north_m_s, v.east_m_s, v.down_m_s)
-                self._pos_t = time.monotonic()
+            p, v = pv.position, pv.velocity
+            self._on_position(LocalNED(p.north_m, p.east_m, p.down_m),
+                              (v.north_m_s, v.east_m_s, v.down_m_s))
 
     async def _watch_texts(self) -> None:
         async for st in self._telemetry.subscribe_status_text():
-            text = str(st.text)
-            severity = int(getattr(st.type, "value", 6))
-            self._texts.append((time.monotonic(), text))
-            log.log(logging.WARNING if severity >= 3 else logging.INFO, "autopilot: %s", text)
-            if self.on_statustext is not None:
-                self.on_statustext(severity, text)
+            # MAVSDK's StatusTextType counts up from DEBUG 0 to EMERGENCY 7: the reverse
+            # of MAVLink's MAV_SEVERITY (EMERGENCY 0 .. DEBUG 7).
+            self._on_statustext(7 - int(getattr(st.type, "value", 1)), str(st.text))
 
     async def _watch_home(self) -> None:
         async for h in self._telemetry.subscribe_home():
             if math.isfinite(h.latitude_deg) and (h.latitude_deg or h.longitude_deg):
-                with self._lock:
-                    self._home = LonLat(h.longitude_deg, h.latitude_deg, h.absolute_altitude_m)
+                self._on_home(LonLat(h.longitude_deg, h.latitude_deg, h.absolute_altitude_m))
 
     async def _watch_landed(self) -> None:
         async for ls in self._telemetry.subscribe_landed_state():
             # MAVSDK LandedState: UNKNOWN 0, ON_GROUND 1, IN_AIR 2, TAKING_OFF 3, LANDING 4.
-            self._landed = int(ls)
+            self._on_landed_state(int(ls))
 
     def close(self) -> None:
         """Cancel subscriptions, destroy MAVSDK and stop the loop."""
@@ -383,30 +366,6 @@ class MavsdkVehicle:
             except RuntimeError as err:
                 log.debug("closing the MAVSDK loop: %s", err)
 
-    # --------------------------------------------------------------- state
-    def state(self) -> VehicleState:
-        """The latest telemetry snapshot."""
-        now = time.monotonic()
-        with self._lock:
-            hb = self._hb
-            if hb is None:
-                raise FlightError("not connected: no autopilot heartbeat yet")
-            return VehicleState(
-                autopilot=self.autopilot,
-                system_status=int(hb["system_status"]),
-                mode=M.decode_mode(self.autopilot, int(hb["custom_mode"])),
-                armed=bool(int(hb["base_mode"]) & M.MAV_MODE_FLAG_SAFETY_ARMED),
-                heartbeat_age_s=now - self._hb_t,
-                position=self._pos,
-                velocity_ned_mps=self._vel,
-                position_age_s=now - self._pos_t,
-                origin=self._origin,
-                home=self._home,
-                landed_state=self._landed,
-                last_statustext=self._texts[-1][1] if self._texts else "",
-                statustext_age_s=now - self._texts[-1][0] if self._texts else math.inf,
-            )
-
     # ------------------------------------------------------------ commands
     def _command(self, command: int, params: tuple[float, ...], timeout_s: float) -> int:
         from mavsdk.plugins.mavlink_direct import MavlinkMessage
@@ -424,22 +383,11 @@ class MavsdkVehicle:
         msg = MavlinkMessage(
             "COMMAND_LONG", 0, 0, self._sysid, M.MAV_COMP_ID_AUTOPILOT1, json.dumps(fields)
         )
-        ack = self._run(self._direct.send_command(msg), timeout_s, f"command {command}")
+        ack = self._run(self._direct.send_command(msg), timeout_s,
+                        f"command {M.command_name(command)}")
         if not ack.fields_json:
-            raise FlightTimeout(f"no COMMAND_ACK for MAV_CMD {command} (MAVSDK)")
+            raise FlightTimeout(f"no COMMAND_ACK for {M.command_name(command)} (MAVSDK)")
         return int(json.loads(ack.fields_json)["result"])
-
-    def _checked(
-        self, command: int, params: tuple[float, ...], timeout_s: float, what: str
-    ) -> None:
-        sent_t = time.monotonic()
-        result = self._command(command, params, timeout_s)
-        if result != M.MAV_RESULT_ACCEPTED:
-            text = self._recent_text(sent_t - 1.0)
-            raise CommandRejected(
-                f"{what}: MAV_CMD {command} answered {M.MAV_RESULT_NAMES.get(result, result)}"
-                + (f" (autopilot says: {text!r})" if text else "")
-            )
 
     def _action(self, name: str, timeout_s: float) -> None:
         from mavsdk.plugins.action import ActionError
@@ -449,16 +397,7 @@ class MavsdkVehicle:
         try:
             self._run(coro, timeout_s, f"action {name}")
         except ActionError as err:
-            text = self._recent_text(sent_t - 1.0)
-            raise CommandRejected(
-                f"{name}: MAVSDK action failed ({err})"
-                + (f" (autopilot says: {text!r})" if text else "")
-            ) from err
-
-    def _recent_text(self, since: float) -> str:
-        """The newest STATUSTEXT received after ``since`` (monotonic), else ''."""
-        with self._lock:
-            return self._texts[-1][1] if self._texts and self._texts[-1][0] >= since else ""
+            raise self._rejected(f"{name}: MAVSDK action failed ({err})", sent_t) from err
 
     def request_telemetry(self, rate_hz: float, timeout_s: float) -> None:
         """MAVSDK ``set_rate_*`` (SET_MESSAGE_INTERVAL) and the EKF origin."""
@@ -488,8 +427,7 @@ class MavsdkVehicle:
             except (TelemetryError, FlightError) as err:
                 log.debug("GPS_GLOBAL_ORIGIN not available yet: %s", err)
                 return False
-            with self._lock:
-                self._origin = LonLat(o.longitude_deg, o.latitude_deg, o.altitude_m)
+            self._on_origin(LonLat(o.longitude_deg, o.latitude_deg, o.altitude_m))
             return True
         return self._command(M.MAV_CMD_REQUEST_MESSAGE, (M.MSG_ID[name],), timeout_s) == 0
 
@@ -506,13 +444,6 @@ class MavsdkVehicle:
         except ActionError as err:
             raise CommandRejected(f"SET_GPS_GLOBAL_ORIGIN failed: {err}") from err
 
-    def set_mode(self, name: str, timeout_s: float) -> None:
-        """DO_SET_MODE by generic name, ACK checked (MavlinkDirect)."""
-        params = M.encode_mode(self.autopilot, name)
-        self._checked(
-            M.MAV_CMD_DO_SET_MODE, tuple(float(v) for v in params), timeout_s, f"mode {name}"
-        )
-
     def arm(self, timeout_s: float) -> None:
         """``Action.arm``."""
         self._action("arm", timeout_s)
@@ -520,15 +451,6 @@ class MavsdkVehicle:
     def disarm(self, timeout_s: float) -> None:
         """``Action.disarm``."""
         self._action("disarm", timeout_s)
-
-    def takeoff(self, alt_m: float, timeout_s: float) -> None:
-        """NAV_TAKEOFF with p7 = altitude above home (ArduPilot GUIDED semantics)."""
-        self._checked(
-            M.MAV_CMD_NAV_TAKEOFF,
-            (0, 0, 0, math.nan, 0, 0, float(alt_m)),
-            timeout_s,
-            f"take-off to {alt_m:.1f} m",
-        )
 
     def land(self, timeout_s: float) -> None:
         """``Action.land`` (MAV_CMD_NAV_LAND)."""

@@ -23,35 +23,23 @@ be confused with a DO_SET_MODE's.
 
 from __future__ import annotations
 
-import collections
 import logging
 import math
 import threading
 import time
-from collections.abc import Callable
 from typing import Any
 
-from geonav.errors import CommandRejected, FlightError, FlightTimeout
+from geonav.errors import FlightError, FlightTimeout
 from geonav.geo import LocalNED, LonLat
 from geonav.mavlink_bridge import modes as M
 from geonav.mavlink_bridge._mav import mavutil
-from geonav.mavlink_bridge.vehicle import Connection, VehicleState
+from geonav.mavlink_bridge.backend_common import Heartbeat, LinkState
+from geonav.mavlink_bridge.vehicle import Connection
 
 log = logging.getLogger(__name__)
 
 #: reopen a silent TCP/serial link after this many seconds without any message.
 RECONNECT_AFTER_S = 3.0
-
-_CMD_NAMES = {
-    M.MAV_CMD_NAV_RETURN_TO_LAUNCH: "NAV_RETURN_TO_LAUNCH",
-    M.MAV_CMD_NAV_LAND: "NAV_LAND",
-    M.MAV_CMD_NAV_TAKEOFF: "NAV_TAKEOFF",
-    M.MAV_CMD_DO_SET_MODE: "DO_SET_MODE",
-    M.MAV_CMD_COMPONENT_ARM_DISARM: "COMPONENT_ARM_DISARM",
-    M.MAV_CMD_SET_MESSAGE_INTERVAL: "SET_MESSAGE_INTERVAL",
-    M.MAV_CMD_REQUEST_MESSAGE: "REQUEST_MESSAGE",
-}
-
 
 def _raise_eof() -> None:
     raise ConnectionAbortedError("EOF on TCP socket (the autopilot closed the link)")
@@ -61,12 +49,10 @@ def _raise_reset() -> None:
     raise ConnectionResetError("TCP connection reset by the autopilot")
 
 
-def command_name(command: int) -> str:
-    """``MAV_CMD_*`` name of a command id."""
-    return "MAV_CMD_" + _CMD_NAMES.get(command, str(command))
+command_name = M.command_name
 
 
-class PymavlinkVehicle:
+class PymavlinkVehicle(LinkState):
     """A Vehicle over pymavlink.
 
     Args:
@@ -85,27 +71,14 @@ class PymavlinkVehicle:
         source_system: int = 255,
         source_component: int = M.MAV_COMP_ID_ONBOARD_COMPUTER,
     ) -> None:
-        self.conn = conn
-        self.autopilot = ""
-        self.on_statustext: Callable[[int, str], None] | None = None
-        self._want_sysid = system_id
+        super().__init__(conn, system_id)
         self._src = (source_system, source_component)
         self._m: Any = None
         self._send_lock = threading.Lock()
-        self._lock = threading.Condition()
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._target = (0, 0)
-        self._hb: Any = None
-        self._hb_t = -math.inf
-        self._pos: LocalNED | None = None
-        self._vel: tuple[float, float, float] | None = None
-        self._pos_t = -math.inf
-        self._origin: LonLat | None = None
-        self._home: LonLat | None = None
-        self._landed_state = 0
         self._acks: dict[int, tuple[float, Any]] = {}
-        self._texts: collections.deque[tuple[float, str]] = collections.deque(maxlen=20)
         self._t0 = time.monotonic()
         self._last_rx = -math.inf
         self._closed = False
@@ -292,63 +265,30 @@ class PymavlinkVehicle:
                 self._m.target_system, self._m.target_component = src
             if src != self._target:
                 return
-            with self._lock:
-                self._hb = msg
-                self._hb_t = time.monotonic()
-                self._lock.notify_all()
+            self._on_heartbeat(Heartbeat(msg.system_status, msg.custom_mode, msg.base_mode))
             return
         if self._hb is None or src[0] != self._target[0]:
             return
-        now = time.monotonic()
-        with self._lock:
-            if kind == "LOCAL_POSITION_NED":
-                self._pos = LocalNED(msg.x, msg.y, msg.z)
-                self._vel = (msg.vx, msg.vy, msg.vz)
-                self._pos_t = now
-            elif kind == "GPS_GLOBAL_ORIGIN":
-                self._origin = LonLat(msg.longitude / 1e7, msg.latitude / 1e7, msg.altitude / 1e3)
-            elif kind == "HOME_POSITION":
-                self._home = LonLat(msg.longitude / 1e7, msg.latitude / 1e7, msg.altitude / 1e3)
-            elif kind == "EXTENDED_SYS_STATE":
-                self._landed_state = msg.landed_state
-            elif kind == "COMMAND_ACK":
-                if msg.target_system in (0, self._src[0]) and msg.target_component in (
-                    0,
-                    self._src[1],
-                ):
-                    self._acks[msg.command] = (now, msg)
-            elif kind == "STATUSTEXT":
-                text = msg.text if isinstance(msg.text, str) else msg.text.decode(errors="replace")
-                self._texts.append((now, text))
-                level = logging.WARNING if msg.severity <= 4 else logging.INFO
-                log.log(level, "autopilot: %s", text)
-                if self.on_statustext is not None:
-                    self.on_statustext(msg.severity, text)
-            self._lock.notify_all()
+        self._on_telemetry(kind, msg)
 
-    # --------------------------------------------------------------- state
-    def state(self) -> VehicleState:
-        """The latest telemetry snapshot."""
-        now = time.monotonic()
-        with self._lock:
-            hb = self._hb
-            if hb is None:
-                raise FlightError("not connected: no autopilot heartbeat yet")
-            return VehicleState(
-                autopilot=self.autopilot,
-                system_status=hb.system_status,
-                mode=M.decode_mode(self.autopilot, hb.custom_mode),
-                armed=bool(hb.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED),
-                heartbeat_age_s=now - self._hb_t,
-                position=self._pos,
-                velocity_ned_mps=self._vel,
-                position_age_s=now - self._pos_t,
-                origin=self._origin,
-                home=self._home,
-                landed_state=self._landed_state,
-                last_statustext=self._texts[-1][1] if self._texts else "",
-                statustext_age_s=now - self._texts[-1][0] if self._texts else math.inf,
-            )
+    def _on_telemetry(self, kind: str, msg: Any) -> None:
+        """A message of the autopilot's system (not a HEARTBEAT) into the store."""
+        if kind == "LOCAL_POSITION_NED":
+            self._on_position(LocalNED(msg.x, msg.y, msg.z), (msg.vx, msg.vy, msg.vz))
+        elif kind == "GPS_GLOBAL_ORIGIN":
+            self._on_origin(LonLat(msg.longitude / 1e7, msg.latitude / 1e7, msg.altitude / 1e3))
+        elif kind == "HOME_POSITION":
+            self._on_home(LonLat(msg.longitude / 1e7, msg.latitude / 1e7, msg.altitude / 1e3))
+        elif kind == "EXTENDED_SYS_STATE":
+            self._on_landed_state(msg.landed_state)
+        elif kind == "COMMAND_ACK":
+            if msg.target_system in (0, self._src[0]) and msg.target_component in (0, self._src[1]):
+                with self._lock:
+                    self._acks[msg.command] = (time.monotonic(), msg)
+                    self._lock.notify_all()
+        elif kind == "STATUSTEXT":
+            text = msg.text if isinstance(msg.text, str) else msg.text.decode(errors="replace")
+            self._on_statustext(int(msg.severity), text)
 
     # ------------------------------------------------------------ commands
     def command(
@@ -385,23 +325,8 @@ class PymavlinkVehicle:
             f"no COMMAND_ACK for {command_name(command)} after {tries} tries in {timeout_s:.1f} s"
         )
 
-    def _checked(
-        self, command: int, params: tuple[float, ...], timeout_s: float, what: str
-    ) -> None:
-        sent_t = time.monotonic()
-        result = self.command(command, params, timeout_s)
-        if result != M.MAV_RESULT_ACCEPTED:
-            reason = self._recent_text(since=sent_t - 1.0)
-            raise CommandRejected(
-                f"{what}: {command_name(command)} answered "
-                f"{M.MAV_RESULT_NAMES.get(result, result)}"
-                + (f" (autopilot says: {reason!r})" if reason else "")
-            )
-
-    def _recent_text(self, since: float) -> str:
-        """The newest STATUSTEXT received after ``since`` (monotonic), else ''."""
-        with self._lock:
-            return self._texts[-1][1] if self._texts and self._texts[-1][0] >= since else ""
+    def _command(self, command: int, params: tuple[float, ...], timeout_s: float) -> int:
+        return self.command(command, params, timeout_s)
 
     def request_telemetry(self, rate_hz: float, timeout_s: float) -> None:
         """SET_MESSAGE_INTERVAL for the streams the bridge reads; request origin and home once."""
@@ -437,13 +362,6 @@ class PymavlinkVehicle:
             int(round(origin.alt_m * 1000)),
         )
 
-    def set_mode(self, name: str, timeout_s: float) -> None:
-        """DO_SET_MODE by generic name; ACK checked."""
-        params = M.encode_mode(self.autopilot, name)
-        self._checked(
-            M.MAV_CMD_DO_SET_MODE, tuple(float(v) for v in params), timeout_s, f"mode {name}"
-        )
-
     def arm(self, timeout_s: float) -> None:
         """One arming attempt."""
         self._checked(M.MAV_CMD_COMPONENT_ARM_DISARM, (1.0,), timeout_s, "arming")
@@ -451,15 +369,6 @@ class PymavlinkVehicle:
     def disarm(self, timeout_s: float) -> None:
         """Disarm."""
         self._checked(M.MAV_CMD_COMPONENT_ARM_DISARM, (0.0,), timeout_s, "disarming")
-
-    def takeoff(self, alt_m: float, timeout_s: float) -> None:
-        """MAV_CMD_NAV_TAKEOFF, p7 = altitude above home (ArduPilot semantics)."""
-        self._checked(
-            M.MAV_CMD_NAV_TAKEOFF,
-            (0, 0, 0, math.nan, math.nan, math.nan, float(alt_m)),
-            timeout_s,
-            f"take-off to {alt_m:.1f} m",
-        )
 
     def land(self, timeout_s: float) -> None:
         """MAV_CMD_NAV_LAND (p4 yaw NaN = keep); the caller confirms LAND on the heartbeat."""

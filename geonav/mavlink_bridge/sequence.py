@@ -407,21 +407,25 @@ def end_flight(
     previous = vehicle.state().mode
     last: FlightError | None = None
 
-    def give_up_link(s: VehicleState) -> None:
+    def poll() -> tuple[VehicleState, bool]:
+        """The state, and whether the vehicle is down (disarmed on a live link)."""
+        s = vehicle.state()
+        if sample is not None:
+            sample(s)
+        if not s.armed and s.heartbeat_age_s <= hb_limit:
+            return s, True
         if s.heartbeat_age_s > hb_limit and time.monotonic() - start > t.dead_link_s:
             raise LinkLost(
                 f"link lost: no autopilot heartbeat for {s.heartbeat_age_s:.0f} s; "
                 f"{end.upper()} tried for {t.dead_link_s:.0f} s; the autopilot's own "
                 "failsafe must act"
             )
+        return s, False
 
     while True:
-        s = vehicle.state()
-        if sample is not None:
-            sample(s)
-        if not s.armed and s.heartbeat_age_s <= hb_limit:
+        s, down = poll()
+        if down:
             return s
-        give_up_link(s)
         if time.monotonic() > deadline:
             raise last or FlightTimeout(f"{end.upper()} not confirmed within {t.landing_s:.0f} s")
         if s.mode in wanted:
@@ -445,12 +449,9 @@ def end_flight(
         watchdog.expect(*wanted)
     log.info("%s confirmed on the heartbeat; waiting for disarm", end.upper())
     while True:
-        s = vehicle.state()
-        if sample is not None:
-            sample(s)
-        if not s.armed and s.heartbeat_age_s <= hb_limit:
+        s, down = poll()
+        if down:
             return s
-        give_up_link(s)
         if s.armed and s.mode not in wanted and s.heartbeat_age_s <= hb_limit:
             raise OperatorTakeover(
                 f"operator takeover during {end.upper()}: mode changed to {s.mode!r} "

@@ -1,10 +1,11 @@
 """The ``Vehicle`` protocol both backends implement, its state record, and connection URLs.
 
-The protocol is synchronous and thread-safe: the flight loop, the setpoint
-pump and the watchdogs call it from their own threads. Every method that
-sends a command returns only after the autopilot's ``COMMAND_ACK`` was
-checked; a result other than ACCEPTED raises
-:class:`geonav.errors.CommandRejected`, no answer raises
+This module owns the contract only and imports no backend (the factory that picks
+one is :func:`geonav.mavlink_bridge.backends.open_vehicle`). The protocol is
+synchronous and thread-safe: the flight loop, the setpoint pump and the watchdogs
+call it from their own threads. Every method that sends a command returns only
+after the autopilot's ``COMMAND_ACK`` was checked; a result other than ACCEPTED
+raises :class:`geonav.errors.CommandRejected`, no answer raises
 :class:`geonav.errors.FlightTimeout`.
 """
 
@@ -15,10 +16,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
-from geonav.errors import ConfigError, FlightError
+from geonav.errors import ConfigError
 from geonav.geo import LocalNED, LonLat
-
-BACKENDS = ("pymavlink", "mavsdk")
 
 
 @dataclass(frozen=True)
@@ -196,30 +195,3 @@ def _baud(rate: int, url: str) -> int:
         raise ConfigError(f"serial connection {url!r}: baud rate {rate} is out of range "
                           f"{BAUD_RANGE[0]}..{BAUD_RANGE[1]}; autopilots use 57600 or 921600")
     return rate
-
-
-def open_vehicle(
-    url: str,
-    backend: str = "pymavlink",
-    *,
-    baud: int | None = None,
-    system_id: int | None = None,
-) -> Vehicle:
-    """A Vehicle for ``url`` with the chosen backend (not yet connected).
-
-    Args:
-        url: connection string (see :func:`parse_connection`).
-        backend: ``"pymavlink"`` or ``"mavsdk"``.
-        baud: serial baud rate if ``url`` has none.
-        system_id: only talk to this autopilot system id (None: the first seen).
-    """
-    conn = parse_connection(url, baud)
-    if backend == "pymavlink":
-        from geonav.mavlink_bridge.pymavlink_backend import PymavlinkVehicle
-
-        return PymavlinkVehicle(conn, system_id=system_id)
-    if backend == "mavsdk":
-        from geonav.mavlink_bridge.mavsdk_backend import MavsdkVehicle
-
-        return MavsdkVehicle(conn, system_id=system_id)
-    raise FlightError(f"backend {backend!r}: use one of {BACKENDS}")
