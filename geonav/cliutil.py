@@ -354,6 +354,17 @@ def needs_subcommand(parser: argparse.ArgumentParser) -> Callable[[argparse.Name
     return handler
 
 
+def add_command_group(sub: argparse._SubParsersAction, name: str, *, help: str,
+                      metavar: str) -> argparse._SubParsersAction:
+    """A command with subcommands of its own (``geonav NAME COMMAND``): its subparsers
+    (``dest`` ``NAME_command``), and without a subcommand it prints its help and exits 2
+    (:func:`needs_subcommand`)."""
+    group = sub.add_parser(name, help=help)
+    commands = group.add_subparsers(dest=f"{name}_command", metavar=metavar)
+    group.set_defaults(handler=needs_subcommand(group))
+    return commands
+
+
 def _number(text: str, what: str, kind: type) -> Any:
     try:
         value = kind(text)
@@ -364,6 +375,14 @@ def _number(text: str, what: str, kind: type) -> Any:
     return value
 
 
+def _checked(text: str, what: str, kind: type, ok: Callable[[Any], bool], must: str) -> Any:
+    """:func:`_number`, refused with "``text`` must be ``must``" unless ``ok(value)``."""
+    value = _number(text, what, kind)
+    if not ok(value):
+        raise argparse.ArgumentTypeError(f"{text!r} must be {must}")
+    return value
+
+
 def finite_float(text: str) -> float:
     """argparse type: any finite number (no nan/inf)."""
     return _number(text, "a finite number", float)
@@ -371,34 +390,22 @@ def finite_float(text: str) -> float:
 
 def positive_float(text: str) -> float:
     """argparse type: a finite number > 0."""
-    value = _number(text, "a positive number", float)
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"{text!r} must be > 0")
-    return value
+    return _checked(text, "a positive number", float, lambda v: v > 0, "> 0")
 
 
 def nonneg_float(text: str) -> float:
     """argparse type: a finite number >= 0."""
-    value = _number(text, "a number >= 0", float)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"{text!r} must be >= 0")
-    return value
+    return _checked(text, "a number >= 0", float, lambda v: v >= 0, ">= 0")
 
 
 def positive_int(text: str) -> int:
     """argparse type: an integer >= 1."""
-    value = _number(text, "an integer", int)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{text!r} must be an integer >= 1")
-    return value
+    return _checked(text, "an integer", int, lambda v: v >= 1, "an integer >= 1")
 
 
 def nonneg_int(text: str) -> int:
     """argparse type: an integer >= 0."""
-    value = _number(text, "an integer", int)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"{text!r} must be an integer >= 0")
-    return value
+    return _checked(text, "an integer", int, lambda v: v >= 0, "an integer >= 0")
 
 
 #: Largest seed geonav accepts: a 32-bit unsigned integer, which every RNG it seeds takes
@@ -408,10 +415,8 @@ MAX_SEED = 2**32 - 1
 
 def seed_int(text: str) -> int:
     """argparse type: a seed, an integer within 0..2**32-1."""
-    value = _number(text, "an integer", int)
-    if not 0 <= value <= MAX_SEED:
-        raise argparse.ArgumentTypeError(f"{text!r} must be a seed within 0..{MAX_SEED}")
-    return value
+    return _checked(text, "an integer", int, lambda v: 0 <= v <= MAX_SEED,
+                    f"a seed within 0..{MAX_SEED}")
 
 
 #: Highest altitude (m above take-off) geonav flies or plans a task at.

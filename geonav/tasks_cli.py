@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from geonav.cliutil import (
-    needs_subcommand,
+    add_command_group,
     positive_float,
     positive_floats,
     positive_int,
@@ -31,9 +31,8 @@ def _limit(text: str) -> float | None:
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    tasks = sub.add_parser("tasks", help="make navigation task sets")
-    tsub = tasks.add_subparsers(dest="tasks_command", metavar="TASKS_COMMAND")
-    tasks.set_defaults(handler=needs_subcommand(tasks))
+    tsub = add_command_group(sub, "tasks", help="make navigation task sets",
+                             metavar="TASKS_COMMAND")
     p = tsub.add_parser("make", help="meta-tasks (regions at 300 m) or whole-scene tasks")
     p.add_argument("scene", help="scene package folder")
     p.add_argument("--kind", choices=["meta", "scene"], default="meta",

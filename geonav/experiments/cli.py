@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from geonav.cliutil import needs_subcommand, nonneg_int, positive_int
+from geonav.cliutil import add_command_group, nonneg_int, positive_int
 
 
 def _seeds(text: str) -> tuple[int, ...]:
@@ -13,9 +13,8 @@ def _seeds(text: str) -> tuple[int, ...]:
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    exp = sub.add_parser("experiment", help="run transfer experiments from a TOML config")
-    esub = exp.add_subparsers(dest="experiment_command", metavar="EXPERIMENT_COMMAND")
-    exp.set_defaults(handler=needs_subcommand(exp))
+    esub = add_command_group(sub, "experiment", help="run transfer experiments from a TOML config",
+                             metavar="EXPERIMENT_COMMAND")
     p = esub.add_parser("run", help="run or resume an experiment; writes runs/NAME/")
     p.add_argument("config", help="experiment TOML (see configs/)")
     p.add_argument("--out", default="runs", help="parent folder of the run (default runs/)")

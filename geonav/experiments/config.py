@@ -476,9 +476,12 @@ def check_noise(cfg: ExperimentConfig,
                               + "; ".join(reasons))
 
 
-def load_config(path: str | Path, overrides: dict[str, Any] | None = None) -> ExperimentConfig:
-    """Read a TOML experiment config; ``overrides`` replace top-level keys."""
-    path = Path(path)
+def read_toml(path: Path, overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+    """A TOML config file's content, ``overrides`` replacing its top-level keys.
+
+    Raises:
+        ConfigError: the file does not exist or is not valid TOML.
+    """
     try:
         data = tomllib.loads(path.read_text())
     except FileNotFoundError as err:
@@ -486,4 +489,10 @@ def load_config(path: str | Path, overrides: dict[str, Any] | None = None) -> Ex
     except tomllib.TOMLDecodeError as err:
         raise ConfigError(f"config {path} is not valid TOML: {err}") from err
     data.update(overrides or {})
-    return parse_config(data, str(path))
+    return data
+
+
+def load_config(path: str | Path, overrides: dict[str, Any] | None = None) -> ExperimentConfig:
+    """Read a TOML experiment config; ``overrides`` replace top-level keys."""
+    path = Path(path)
+    return parse_config(read_toml(path, overrides), str(path))

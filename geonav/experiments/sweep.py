@@ -33,7 +33,7 @@ else:  # pragma: no cover - Python 3.10
 
 from geonav.errors import ConfigError
 from geonav.experiments.backend import Backend
-from geonav.experiments.config import ExperimentConfig, parse_config
+from geonav.experiments.config import ExperimentConfig, parse_config, read_toml
 
 
 def parse_param(text: str) -> tuple[str, list[Any]]:
@@ -80,13 +80,7 @@ def sweep_configs(path: str | os.PathLike[str], params: list[str],
                   ) -> tuple[str, list[tuple[dict[str, Any], ExperimentConfig]]]:
     """The sweep's name and its (point, config) variants, in grid order."""
     path = Path(path)
-    try:
-        data = tomllib.loads(path.read_text())
-    except FileNotFoundError as err:
-        raise ConfigError(f"config {path} does not exist") from err
-    except tomllib.TOMLDecodeError as err:
-        raise ConfigError(f"config {path} is not valid TOML: {err}") from err
-    data.update(overrides or {})
+    data = read_toml(path, overrides)
     if not params:
         raise ConfigError("a sweep needs at least one --param KEY=V1,V2")
     grid = [parse_param(p) for p in params]

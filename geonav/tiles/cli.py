@@ -7,8 +7,8 @@ import warnings
 from pathlib import Path
 
 from geonav.cliutil import (
+    add_command_group,
     finite_float,
-    needs_subcommand,
     nonneg_int,
     positive_float,
     seed_int,
@@ -21,9 +21,9 @@ __all__ = ["add_parser", "parse_bbox", "parse_lonlat", "run_ingest", "run_synth"
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    tiles = sub.add_parser("tiles", help="ingest imagery into scene packages, inspect scenes")
-    tsub = tiles.add_subparsers(dest="tiles_command", metavar="TILES_COMMAND")
-    tiles.set_defaults(handler=needs_subcommand(tiles))
+    tsub = add_command_group(sub, "tiles",
+                             help="ingest imagery into scene packages, inspect scenes",
+                             metavar="TILES_COMMAND")
 
     p = tsub.add_parser("ingest", help="GeoTIFFs, XYZ tile folders, MBTiles -> scene package")
     p.add_argument("sources", nargs="+",

@@ -204,19 +204,15 @@ def _ingest(
     ground_ref = origin.alt_m if origin is not None else 0.0
     dsm_info = None
     if dsm is not None:
-        dsm_src = dsm if isinstance(dsm, RasterSource) else open_raster(
-            dsm, bands=1, bbox_lonlat=bbox_lonlat, memory_budget_mb=memory_budget_mb,
-            height_units=dsm_units)
+        dsm_src = _height_source(dsm, bbox_lonlat, memory_budget_mb, dsm_units)
         dsm_abs = reproject_heights(dsm_src, grid)
         if not np.isfinite(dsm_abs).any():
             raise NoOverlap(f"the DSM {dsm_src.info.get('file', '')} does not overlap the "
                             "imagery; check its CRS and extent")
         dem_grid = None
         if dem is not None:
-            dem_src = dem if isinstance(dem, RasterSource) else open_raster(
-                dem, bands=1, bbox_lonlat=bbox_lonlat, memory_budget_mb=memory_budget_mb,
-                height_units=dsm_units)
-            dem_grid = reproject_heights(dem_src, grid)
+            dem_grid = reproject_heights(
+                _height_source(dem, bbox_lonlat, memory_budget_mb, dsm_units), grid)
             if not np.isfinite(dem_grid).any():
                 raise NoOverlap("the DEM does not overlap the imagery")
         heights, ground_ref = heights_above_ground(dsm_abs, ground_alt_m, dem_grid)
@@ -246,6 +242,16 @@ def _ingest(
 
 
 #: Default origins of the built-in synthetic scenes (lon, lat, ground alt AMSL m).
+def _height_source(source: str | os.PathLike[str] | RasterSource,
+                   bbox_lonlat: tuple[float, float, float, float] | None,
+                   memory_budget_mb: float | None, units: str | None) -> RasterSource:
+    """A DSM or DEM as a one-band :class:`RasterSource` (read from its file unless given)."""
+    if isinstance(source, RasterSource):
+        return source
+    return open_raster(source, bands=1, bbox_lonlat=bbox_lonlat,
+                       memory_budget_mb=memory_budget_mb, height_units=units)
+
+
 SYNTH_ORIGINS: dict[str, LonLat] = {
     "residential": LonLat(4.4777, 51.9244, 2.0),
     "campus": LonLat(-84.3963, 33.7756, 290.0),
