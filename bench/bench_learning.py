@@ -1,19 +1,32 @@
 """Learning benchmark: geonav's learners beside SB3 PPO on the same task, budget and seeds.
 
 Judged as ALGORITHMS.md (f) says: greedy success and SPL over every start cell, beside
-the task's exact random-walk and best state-blind success. For every method it prints
-the env steps and episodes until greedy SR over all starts first reaches the threshold
-(evaluated every ``--eval-every`` steps), and the final greedy and sampled SR and SPL,
-steps per second of training (evaluation excluded), median [min-max] over seeds.
+the task's exact random-walk and best view-blind success (a policy that knows the target
+and ignores the view). For every method it prints the env steps and episodes until greedy
+SR over the evaluated starts first reaches the threshold (evaluated every ``--eval-every``
+steps), the final greedy and sampled SR and SPL, the final view-ablated greedy SR (the
+current view swapped for another cell's), and env steps per CPU-second of training
+(evaluation excluded), median [min-max] over seeds.
 
-    python bench/bench_learning.py                     # quick B task, 3 seeds, 32768 steps
-    python bench/bench_learning.py --methods ppo,a3c --steps 16384 --seeds 0
+    python bench/bench_learning.py                                   # the view-needing tasks
+    python bench/bench_learning.py --task view45-campus --methods sb3-ppo,geonav-ppo \
+        --encoders cnn,corr --seeds 0,1,2
+    python bench/bench_learning.py --task quick-b                    # the old corner task
 
-The default task is the quick experiment's scene-B task (7 x 7 cells of 20 m at 300 m,
-50 steps, 64 px); ``--scene``/``--tasks`` take any other. SB3 PPO (default
-``MultiInputPolicy``, ``pip install 'geonav[sb3]'``) is skipped with a note when
-stable-baselines3 is missing. A run stops early once its greedy SR has been at the
-threshold at two consecutive evaluations (``--no-stop`` trains the whole budget).
+Tasks (``--task``, comma-separated; ``--scene``/``--tasks`` take any other):
+
+- ``view45-campus``, ``view45-residential``: ``--targets`` regions of 9 x 9 cells of
+  10 m at 45 m, 30 steps, 64 px, kept only where the view-blind success is <= 0.3 and
+  start cells lie on every side of the target (issue 29's ``max_blind``);
+- ``view75-campus``, ``view75-residential``: the same with 15 m cells at 75 m;
+- ``quick-b``: the first benchmark task (7 x 7 cells of 20 m at 300 m, 50 steps), which a
+  view-blind policy solves at 0.86: it cannot show navigation by the view.
+
+SB3 PPO (default ``MultiInputPolicy``: a NatureCNN per image key, ``pip install
+'geonav[sb3]'``) is skipped with a note when stable-baselines3 is missing. A run stops
+early once its greedy SR has been at the threshold at two consecutive evaluations
+(``--no-stop`` trains the whole budget). ``--ppo k=v,...`` and ``--net k=v,...`` override
+geonav PPO's and the network's configuration (the sweep of docs/learning.md §14).
 """
 
 from __future__ import annotations
@@ -34,10 +47,10 @@ sys.path.insert(0, str(ROOT))
 
 
 def quick_b_task(cache: Path) -> tuple[str, str]:
-    """The learning benchmark's task, made once under ``cache``: the quick config's scene B
+    """The first benchmark task, made once under ``cache``: the quick config's scene B
     (1100 m campus, seed 1) and its transfer task as it was when these figures were
     measured (one 140 m region of 7 x 7 cells of 20 m at 300 m, 50 steps, 64 px, seed 3;
-    random walk 0.387). configs/quick.toml has since moved to harder tasks."""
+    random walk 0.387, view-blind 0.86). configs/quick.toml has since moved to harder tasks."""
     from geonav.demo import ensure_scene
     from geonav.experiments.config import TaskSpec
     from geonav.experiments.runner import make_taskset
@@ -52,6 +65,45 @@ def quick_b_task(cache: Path) -> tuple[str, str]:
     return str(scene), str(tasks)
 
 
+VIEW_TASKS = {  # name: (scene kind, scene seed, altitude m, cell step m)
+    "view45-campus": ("campus", 1, 45.0, 10.0),
+    "view75-campus": ("campus", 1, 75.0, 15.0),
+    "view45-residential": ("residential", 2, 45.0, 10.0),
+    "view75-residential": ("residential", 2, 75.0, 15.0),
+}
+"""The view-needing benchmark tasks (issue 30): 9 x 9 cells, 30 steps, 64 px, targets whose
+view-blind success is <= 0.3 with start cells on every side."""
+
+
+def view_task(cache: Path, name: str, targets: int, seed: int = 3) -> tuple[str, str]:
+    """A view-needing task set of :data:`VIEW_TASKS` with ``targets`` regions, made once
+    under ``cache`` (scenes of 1100 m at 0.5 m)."""
+    from geonav.demo import ensure_scene
+    from geonav.experiments.config import TaskSpec
+    from geonav.experiments.runner import make_taskset
+
+    kind, scene_seed, alt, step = VIEW_TASKS[name]
+    scene = cache / f"scene_{kind}{scene_seed}"
+    ensure_scene(scene, f"{kind}{scene_seed}", kind, scene_seed, 1100.0, 0.5)
+    tspec = TaskSpec(name=name, scene=kind, kind="meta", count=targets, size_m=9 * step,
+                     alt_m=alt, step_m=step, max_steps=30, obs_size_px=64, seed=seed,
+                     max_blind=0.3)
+    tasks = cache / f"{name}-{targets}-s{seed}.json"
+    if not tasks.exists():
+        make_taskset(tspec, str(scene)).save(tasks)
+    return str(scene), str(tasks)
+
+
+def bench_task(cache: Path, name: str, targets: int) -> tuple[str, str]:
+    """``--task`` NAME -> (scene, task set)."""
+    if name == "quick-b":
+        return quick_b_task(cache)
+    if name not in VIEW_TASKS:
+        raise SystemExit(f"bench_learning: unknown task {name!r}; known: quick-b, "
+                         f"{', '.join(VIEW_TASKS)}")
+    return view_task(cache, name, targets)
+
+
 def quick_b_env(cache: Path) -> tuple[Any, Any, int]:
     """The quick B task as an env factory, one env of it and its view side in pixels."""
     from geonav.policy.envs import EnvFactory
@@ -61,28 +113,56 @@ def quick_b_env(cache: Path) -> tuple[Any, Any, int]:
     return factory, env, int(env.observation_space["image"].shape[0])
 
 
-class _SB3Actor:
-    def __init__(self, model: Any, greedy: bool) -> None:
-        self.model, self.greedy = model, greedy
-
-    def reset(self) -> None:
-        pass
-
-    def act(self, obs: dict[str, np.ndarray], info: dict[str, Any] | None = None) -> int:
-        a, _ = self.model.predict(obs, deterministic=self.greedy)
-        return int(a)
-
-
-def _eval_row(policy: Any, env: Any, frozen: Any, max_starts: int, seed: int) -> dict[str, Any]:
-    from geonav.policy.evaluation import all_starts, evaluate
+def _eval_row(model: Any, env: Any, max_starts: int | None, seed: int) -> dict[str, Any]:
+    """An SB3 model's greedy, sampled and view-ablated greedy evaluation from the same
+    starts as geonav's learners get, all episodes stepped together (:func:`_sb3_lockstep`)."""
+    from geonav.policy.evaluation import all_starts
 
     starts = all_starts(env, max_starts, seed)
     out = {}
-    for name, greedy in (("greedy", True), ("sampled", False)):
-        actor = policy if not isinstance(policy, tuple) else policy[1](greedy)
-        res = evaluate(actor, env, frozen=frozen, starts=starts, greedy=greedy, seed=seed)
-        out[f"{name}_sr"], out[f"{name}_spl"] = res.success_rate, res.spl
+    for name, greedy, ablate in (("greedy", True, False), ("sampled", False, False),
+                                 ("ablated", True, True)):
+        out[f"{name}_sr"], out[f"{name}_spl"] = _sb3_lockstep(model, env, starts, greedy,
+                                                               ablate, seed)
     return out
+
+
+def _sb3_lockstep(model: Any, env: Any, starts: list[Any], greedy: bool, ablate: bool,
+                  seed: int) -> tuple[float, float]:
+    """(SR, SPL) of an SB3 policy from ``starts``, stepped in lock-step through
+    :class:`geonav.vecenv.LatticeVecEnv` (GeoNavEnv's semantics) with one batched
+    ``predict`` per step; ablation uses geonav's decoy draws (geonav.policy.evaluation).
+    SB3's policy is feed-forward, so batching changes nothing but speed."""
+    from geonav.policy.evaluation import _view_table, ablation_rng, decoy_rows, spl
+    from geonav.vecenv import LatticeVecEnv
+
+    table = _view_table(env, None).numpy()
+    venv = LatticeVecEnv(env.unwrapped, len(starts))
+    venv.reset(tasks=[ti for ti, _ in starts], starts=[c for _, c in starts])
+    b = len(starts)
+    draws = None
+    if ablate:
+        horizon = max(int(venv.max_steps[ti]) for ti, _ in starts)
+        draws = np.stack([ablation_rng(seed, s).random(horizon) for s in range(b)])
+    target = table[venv.target_index]
+    active, succ, spls, t = np.ones(b, bool), np.zeros(b), np.zeros(b), 0
+    while active.any():
+        rows = venv.view_index if draws is None else decoy_rows(venv, draws[:, t])
+        t += 1
+        a, _ = model.predict({"image": table[rows], "target": target}, deterministic=greedy)
+        for f in venv.step(np.asarray(a), autoreset=False).final:
+            s = f["slot"]
+            if active[s]:
+                active[s] = False
+                succ[s] = f["success"]
+                spls[s] = spl(f["success"], f["shortest_path"], f["length"])
+    return float(succ.mean()), float(spls.mean())
+
+
+def _cpu() -> float:
+    """This process's CPU seconds (all threads): a rate per CPU-second does not depend on
+    what else the shared machine runs."""
+    return time.process_time()
 
 
 def run_ppo(scene: str, tasks: str, steps: int, seed: int, args: argparse.Namespace
@@ -94,42 +174,69 @@ def run_ppo(scene: str, tasks: str, steps: int, seed: int, args: argparse.Namesp
 
     factory = EnvFactory(scene, tasks)
     env, eval_env = factory(), factory()
-    model = PPO("MultiInputPolicy", env, seed=seed, verbose=0, device="cpu")
+    model = PPO("MultiInputPolicy", env, seed=seed, verbose=0, device="cpu",
+                **_kv(args.sb3, {}))
     evals: list[dict[str, Any]] = []
-    state = {"episodes": 0, "train_s": 0.0, "t0": time.perf_counter()}
+    state = {"episodes": 0, "train_s": 0.0, "t0": _cpu()}
 
     class Every(BaseCallback):
         def _on_step(self) -> bool:
             state["episodes"] += int(sum(bool(d) for d in self.locals["dones"]))
             if self.num_timesteps % args.eval_every == 0:
-                state["train_s"] += time.perf_counter() - state["t0"]
-                row = _eval_row((None, lambda g: _SB3Actor(model, g)), eval_env, None,
-                                args.max_starts, seed)
+                state["train_s"] += _cpu() - state["t0"]
+                row = _eval_row(model, eval_env, args.max_starts, seed)
                 evals.append({"env_steps": self.num_timesteps,
                               "episodes": state["episodes"], **row})
-                state["t0"] = time.perf_counter()
+                _progress("sb3-ppo", seed, evals[-1])
+                state["t0"] = _cpu()
                 if not args.no_stop and _met(evals, args.threshold):
                     return False
             return True
 
     model.learn(total_timesteps=steps, callback=Every())
-    state["train_s"] += time.perf_counter() - state["t0"]
+    state["train_s"] += _cpu() - state["t0"]
     return _summary(evals, state["train_s"], args.threshold)
 
 
+def _kv(text: str | None, types: dict[str, Any]) -> dict[str, Any]:
+    """'a=1,b=x' -> {'a': 1, 'b': 'x'} (numbers and true/false parsed; nested 'loss.beta')."""
+    out: dict[str, Any] = {}
+    for item in filter(None, (text or "").split(",")):
+        key, _, raw = item.partition("=")
+        val: Any = raw
+        if raw.lower() in ("true", "false"):
+            val = raw.lower() == "true"
+        else:
+            for cast in (int, float):
+                try:
+                    val = cast(raw)
+                    break
+                except ValueError:
+                    pass
+        if "." in key:
+            outer, inner = key.split(".", 1)
+            out.setdefault(outer, {})[inner] = val
+        else:
+            out[key.strip()] = val
+    return out
+
+
 def run_geonav(algo: str, scene: str, tasks: str, steps: int, seed: int,
-               args: argparse.Namespace, batch: int | None = None) -> dict[str, Any]:
+               args: argparse.Namespace, batch: int | None = None, encoder: str = "cnn"
+               ) -> dict[str, Any]:
     from geonav.policy.callbacks import Callback
-    from geonav.policy.config import NetConfig
+    from geonav.policy.config import NetConfig, from_dict
     from geonav.policy.curriculum import trainer_class
     from geonav.policy.envs import EnvFactory
     from geonav.policy.meta_config import base_config
 
     factory = EnvFactory(scene, tasks)
     n_px = int(factory().observation_space["image"].shape[0])
-    state = {"steps": 0, "episodes": 0, "next_eval": args.eval_every}
+    state = {"steps": 0, "episodes": 0, "next_eval": args.eval_every, "cpu0": 0.0,
+             "eval_cpu": 0.0}
     evals: list[dict[str, Any]] = []
     trainer: Any = None
+    label = f"{algo}/{encoder}"
 
     class Budget(Callback):
         def on_episode(self, record: dict[str, Any]) -> bool | None:
@@ -137,10 +244,12 @@ def run_geonav(algo: str, scene: str, tasks: str, steps: int, seed: int,
             state["episodes"] += 1
             if state["steps"] >= state["next_eval"]:
                 state["next_eval"] += args.eval_every
+                c0 = _cpu()
                 row = trainer.evaluate_now([], _Result())
+                state["eval_cpu"] += _cpu() - c0
                 evals.append({"env_steps": state["steps"], "episodes": state["episodes"],
-                              **{k: row[k] for k in ("greedy_sr", "greedy_spl", "sampled_sr",
-                                                     "sampled_spl")}})
+                              **{k: row.get(k) for k in _FIGS}})
+                _progress(label, seed, evals[-1])
                 if not args.no_stop and _met(evals, args.threshold):
                     return False
             return False if state["steps"] >= steps else None
@@ -154,24 +263,26 @@ def run_geonav(algo: str, scene: str, tasks: str, steps: int, seed: int,
         opts["alpha"] = args.alpha
     if algo == "ppo":
         from geonav.policy.batched.ppo import PPOConfig
-        from geonav.policy.config import from_dict
 
         opts.pop("lr")  # PPO's own default
+        opts.update(_kv(args.ppo, {}))
         cfg = from_dict(PPOConfig, opts)
         engine = "batched"
     else:
+        opts.update(_kv(args.algo_opts, {}))
         cfg = base_config(algo, opts)
+    net = from_dict(NetConfig, {"obs_size_px": n_px, "encoder": encoder, **_kv(args.net, {})})
     if engine == "batched":
         from geonav.policy.engine import build_trainer
 
-        trainer = build_trainer(algo, "batched", factory, NetConfig(obs_size_px=n_px), cfg,
+        trainer = build_trainer(algo, "batched", factory, net, cfg,
                                 batch=batch, callbacks=[Budget()], keep_records=False)
     else:
-        trainer = trainer_class(algo)(factory, NetConfig(obs_size_px=n_px), cfg,
-                                      callbacks=[Budget()], keep_records=False)
-    t0 = time.perf_counter()
+        trainer = trainer_class(algo)(factory, net, cfg, callbacks=[Budget()],
+                                      keep_records=False)
+    c0 = _cpu()
     trainer.train()
-    train_s = time.perf_counter() - t0 - trainer.eval_s
+    train_s = _cpu() - c0 - state["eval_cpu"]
     out = _summary(evals, train_s, args.threshold, steps_done=state["steps"])
     choice = getattr(trainer, "engine_choice", None)
     out["engine"] = choice.engine if choice is not None else "async"
@@ -186,6 +297,15 @@ class _Result:
         self.evals: list[dict[str, Any]] = []
 
 
+_FIGS = ("greedy_sr", "greedy_spl", "sampled_sr", "sampled_spl", "ablated_sr", "ablated_spl")
+
+
+def _progress(label: str, seed: int, row: dict[str, Any]) -> None:
+    print(f"    {label} seed {seed} @ {row['env_steps']} steps / {row['episodes']} episodes: "
+          f"greedy {row['greedy_sr']:.3f}, sampled {row['sampled_sr']:.3f}, "
+          f"ablated {row['ablated_sr']:.3f}", file=sys.stderr, flush=True)
+
+
 def _met(evals: list[dict[str, Any]], thr: float) -> bool:
     return len(evals) >= 2 and evals[-1]["greedy_sr"] >= thr and evals[-2]["greedy_sr"] >= thr
 
@@ -197,9 +317,8 @@ def _summary(evals: list[dict[str, Any]], train_s: float, thr: float,
     steps = steps_done if steps_done is not None else (last.get("env_steps") or 0)
     return {"steps_to_thr": None if first is None else first["env_steps"],
             "episodes_to_thr": None if first is None else first["episodes"],
-            "final": {k: last.get(k) for k in ("greedy_sr", "greedy_spl", "sampled_sr",
-                                              "sampled_spl")},
-            "steps": steps, "steps_per_s": steps / max(train_s, 1e-9), "evals": evals}
+            "final": {k: last.get(k) for k in _FIGS},
+            "steps": steps, "steps_per_cpu_s": steps / max(train_s, 1e-9), "evals": evals}
 
 
 def _med(vals: list[float | None], spec: str = ".0f") -> str:
@@ -211,85 +330,115 @@ def _med(vals: list[float | None], spec: str = ".0f") -> str:
     return text + (f", {miss}/{len(vals)} never" if miss else "")
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--scene"), ap.add_argument("--tasks")
-    ap.add_argument("--methods", default="sb3-ppo,a3c,isar,savn",
-                    help="sb3-ppo (Stable-Baselines3), a3c, isar, savn (the async reference "
-                    "trainers), geonav-ppo (geonav's PPO, batched engine), a3c-batched, "
-                    "isar-batched (batched engine, default batch)")
-    ap.add_argument("--steps", type=int, default=32768, help="env steps per run")
-    ap.add_argument("--batch", default="16", help="comma-separated per-run batches (slots "
-                    "of one run) of the batched-engine methods, e.g. 4,16,64")
-    ap.add_argument("--seeds", default="0,1,2")
-    ap.add_argument("--eval-every", type=int, default=2048, help="env steps between evals")
-    ap.add_argument("--max-starts", type=int, default=100)
-    ap.add_argument("--threshold", type=float, default=0.95)
-    ap.add_argument("--lr", type=float, default=5e-4, help="geonav learners' Adam lr")
-    ap.add_argument("--alpha", type=float, default=1e-3, help="ISAR's inner rate")
-    ap.add_argument("--no-stop", action="store_true")
-    ap.add_argument("--cache", default=str(ROOT / "bench" / ".cache"))
-    ap.add_argument("--json", help="also write every figure here")
-    args = ap.parse_args()
+BATCHED = ("geonav-ppo", "a3c-batched", "isar-batched")
 
-    import torch
 
-    torch.set_num_threads(1)
+def _plan(args: argparse.Namespace) -> list[tuple[str, str, int | None, str]]:
+    """(label, method, batch, encoder) for every row."""
+    todo = []
+    for m in args.methods.split(","):
+        encs = ["-"] if m in ("sb3-ppo", "ppo") else args.encoders.split(",")
+        batches = args.batch.split(",") if m in BATCHED else ["-"]
+        for enc in encs:
+            for b in batches:
+                label = m + (f" {enc}" if enc != "-" else "") + (f" B={b}" if b != "-" else "")
+                todo.append((label, m, int(b) if b != "-" else None, enc))
+    return todo
+
+
+def run_task(scene: str, tasks: str, args: argparse.Namespace) -> dict[str, Any]:
+    """Every method on one task; prints its table and returns the figures."""
     from geonav.difficulty import env_difficulty
     from geonav.policy.envs import EnvFactory
 
-    if args.scene and args.tasks:
-        scene, tasks = args.scene, args.tasks
-    else:
-        scene, tasks = quick_b_task(Path(args.cache))
     chance = env_difficulty(EnvFactory(scene, tasks)())
     seeds = [int(s) for s in args.seeds.split(",")]
-    print(f"task {tasks}: random walk SR {chance['random_walk_sr']:.3f}, best state-blind "
-          f"{chance['blind_sr']:.3f}, mean shortest path {chance['mean_shortest_path']:.1f}; "
-          f"budget {args.steps} steps, seeds {seeds}, threshold {args.threshold}", flush=True)
+    print(f"\ntask {Path(tasks).name}: random walk SR {chance['random_walk_sr']:.3f}, best "
+          f"view-blind {chance['blind_sr']:.3f}, mean shortest path "
+          f"{chance['mean_shortest_path']:.1f}; budget {args.steps} steps, seeds {seeds}, "
+          f"threshold {args.threshold}", flush=True)
     results: dict[str, list[dict[str, Any]]] = {}
-    batched = ("geonav-ppo", "a3c-batched", "isar-batched")
-    todo = [(f"{m} B={b}" if m in batched else m, m, int(b) if m in batched else None)
-            for m in args.methods.split(",")
-            for b in (args.batch.split(",") if m in batched else ["-"])]
-    for label, method, batch in todo:
+    for label, method, batch, enc in _plan(args):
         runs = []
         for seed in seeds:
-            if method == "sb3-ppo" or method == "ppo":
+            if method in ("sb3-ppo", "ppo"):
                 try:
                     import stable_baselines3  # noqa: F401
                 except ImportError:
-                    print("ppo: skipped (pip install 'geonav[sb3]')", flush=True)
+                    print("sb3-ppo: skipped (pip install 'geonav[sb3]')", flush=True)
                     break
                 r = run_ppo(scene, tasks, args.steps, seed, args)
             else:
                 algo = "ppo" if method == "geonav-ppo" else method
-                r = run_geonav(algo, scene, tasks, args.steps, seed, args, batch)
+                r = run_geonav(algo, scene, tasks, args.steps, seed, args, batch, enc)
             runs.append(r)
             print(f"  {label} seed {seed} ({r.get('engine', 'sb3')} engine): greedy SR >= "
-                  f"{args.threshold} after "
-                  f"{r['steps_to_thr']} steps / {r['episodes_to_thr']} episodes; final greedy "
-                  f"{r['final']['greedy_sr']}, sampled {r['final']['sampled_sr']}; "
-                  f"{r['steps_per_s']:.0f} steps/s", flush=True)
+                  f"{args.threshold} after {r['steps_to_thr']} steps / {r['episodes_to_thr']} "
+                  f"episodes; final greedy {r['final']['greedy_sr']}, sampled "
+                  f"{r['final']['sampled_sr']}, ablated {r['final']['ablated_sr']}; "
+                  f"{r['steps_per_cpu_s']:.0f} steps/CPU-s", flush=True)
         if runs:
             results[label] = runs
     print(f"\n| method | steps to greedy SR >= {args.threshold} | episodes to it | final greedy"
-          " SR | final greedy SPL | final sampled SR | final sampled SPL | steps/s |")
-    print("|---|---|---|---|---|---|---|---|")
+          " SR | final greedy SPL | final sampled SR | final sampled SPL | final view-ablated"
+          " SR | steps/CPU-s |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for m, runs in results.items():
         f = [r["final"] for r in runs]
         print(f"| {m} | {_med([r['steps_to_thr'] for r in runs])} | "
               f"{_med([r['episodes_to_thr'] for r in runs])} | "
-              f"{_med([x['greedy_sr'] for x in f], '.2f')} | "
-              f"{_med([x['greedy_spl'] for x in f], '.2f')} | "
-              f"{_med([x['sampled_sr'] for x in f], '.2f')} | "
-              f"{_med([x['sampled_spl'] for x in f], '.2f')} | "
-              f"{_med([r['steps_per_s'] for r in runs])} |")
-    print(f"| random walk | - | - | {chance['random_walk_sr']:.2f} (exact) | - | - | - | - |")
-    print(f"| best state-blind | - | - | {chance['blind_sr']:.2f} (exact) | - | - | - | - |")
+              + " | ".join(_med([x[k] for x in f], ".2f") for k in _FIGS[:4] + ("ablated_sr",))
+              + f" | {_med([r['steps_per_cpu_s'] for r in runs])} |")
+    print(f"| random walk | - | - | {chance['random_walk_sr']:.2f} (exact) | - | - | - | - | - |")
+    print(f"| best view-blind | - | - | {chance['blind_sr']:.2f} (exact) | - | - | - | - | - |",
+          flush=True)
+    return {"chance": chance, "results": results}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--task", default="view45-campus,view75-residential",
+                    help="comma-separated: quick-b, " + ", ".join(VIEW_TASKS))
+    ap.add_argument("--targets", type=int, default=8, help="regions (targets) per view task")
+    ap.add_argument("--scene"), ap.add_argument("--tasks")
+    ap.add_argument("--methods", default="sb3-ppo,geonav-ppo",
+                    help="sb3-ppo (Stable-Baselines3), a3c, isar, savn (the async reference "
+                    "trainers), geonav-ppo (geonav's PPO, batched engine), a3c-batched, "
+                    "isar-batched (batched engine)")
+    ap.add_argument("--encoders", default="cnn,corr",
+                    help="geonav methods' encoders: cnn (trainable), corr, random")
+    ap.add_argument("--steps", type=int, default=40960, help="env steps per run")
+    ap.add_argument("--batch", default="16", help="comma-separated per-run batches (slots "
+                    "of one run) of the batched-engine methods, e.g. 16,64")
+    ap.add_argument("--seeds", default="0,1,2")
+    ap.add_argument("--eval-every", type=int, default=4096, help="env steps between evals")
+    ap.add_argument("--max-starts", type=int, default=0,
+                    help="starts per evaluation (0: every start cell of every target)")
+    ap.add_argument("--threshold", type=float, default=0.95)
+    ap.add_argument("--lr", type=float, default=5e-4, help="A3C/ISAR/SAVN's Adam lr")
+    ap.add_argument("--alpha", type=float, default=1e-3, help="ISAR's inner rate")
+    ap.add_argument("--ppo", help="geonav PPO overrides, e.g. t_max=64,epochs=8,loss.beta=0")
+    ap.add_argument("--algo-opts", help="A3C/ISAR/SAVN overrides, same form")
+    ap.add_argument("--net", help="network overrides, e.g. hidden_size=256")
+    ap.add_argument("--sb3", help="SB3 PPO keyword overrides, e.g. n_steps=512")
+    ap.add_argument("--no-stop", action="store_true")
+    ap.add_argument("--cache", default=str(ROOT / "bench" / ".cache"))
+    ap.add_argument("--json", help="also write every figure here")
+    args = ap.parse_args()
+    if args.max_starts <= 0:
+        args.max_starts = 10 ** 6  # more than any task has: every start
+
+    import torch
+
+    torch.set_num_threads(1)
+    if args.scene and args.tasks:
+        todo = [(args.scene, args.tasks)]
+    else:
+        todo = [bench_task(Path(args.cache), t, args.targets) for t in args.task.split(",")]
+    out = {Path(t).name: run_task(scene, t, args) for scene, t in todo}
     if args.json:
-        Path(args.json).write_text(json.dumps({"chance": chance, "results": results,
-                                               "args": vars(args)}, indent=1, default=str))
+        Path(args.json).write_text(json.dumps({"tasks": out, "args": vars(args)}, indent=1,
+                                              default=str))
 
 
 if __name__ == "__main__":
