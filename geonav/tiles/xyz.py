@@ -298,7 +298,7 @@ def _refs_in_bbox(refs: Sequence[TileRef], bbox_lonlat: Sequence[float], z: int,
     return inside
 
 
-def _load_tile(ref: TileRef) -> tuple[TileRef, Any, Any, str | None, str | None]:
+def _load_tile(ref: TileRef) -> tuple[TileRef, Any, Any, Any, str | None]:
     """(ref, rgb, alpha, sha256 of the bytes, None) of a decoded tile, or (ref, None, None,
     None, why) when it cannot be read or decoded."""
     try:
