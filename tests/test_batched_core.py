@@ -52,8 +52,20 @@ def setup():
 def cnn_setup():
     """The trainable CNN inside the network; the 'table' holds uint8 views (the CNN
     adapts per slot in the inner steps)."""
+    return _cnn_setup("small", 32)
+
+
+@pytest.fixture(scope="module")
+def nature_setup():
+    """The three-convolution ('nature') trainable CNN, at 40 px (it needs >= 36)."""
+    return _cnn_setup("nature", 40)
+
+
+def _cnn_setup(kind, px):
+    from dataclasses import replace
+
     torch.manual_seed(2)
-    model = ActorCritic(tiny_net("cnn", 32, size=16)).double()
+    model = ActorCritic(replace(tiny_net("cnn", px, size=16), cnn=kind)).double()
     with torch.no_grad():  # features of order 1: the gradients' float64 rounding ~1e-12
         for p in model.encoder.parameters():
             p.mul_(0.3)
@@ -61,7 +73,7 @@ def cnn_setup():
         model.actor.bias.normal_()
         model.critic.bias.normal_()
     g = torch.Generator().manual_seed(3)
-    images = torch.randint(0, 256, (12, 32, 32, 3), generator=g, dtype=torch.uint8)
+    images = torch.randint(0, 256, (12, px, px, 3), generator=g, dtype=torch.uint8)
     return model, images
 
 
@@ -129,13 +141,15 @@ def test_sequence_forward_equals_module(setup, b):
     model.zero_grad(set_to_none=True)
 
 
-@pytest.mark.parametrize("b", [1, 5])
-def test_cnn_forward_with_per_slot_weights_equals_module(cnn_setup, b):
-    """The trainable CNN under per-slot weights theta_s = phi + delta_s (the encoder's
-    SlotDeltas and the linear layers' factors) equals functional_call with theta_s."""
+@pytest.mark.parametrize("b,kind", [(1, "cnn_setup"), (5, "cnn_setup"),
+                                    (3, "nature_setup")])
+def test_cnn_forward_with_per_slot_weights_equals_module(request, b, kind):
+    """The trainable CNN (both kinds) under per-slot weights theta_s = phi + delta_s (the
+    encoder's SlotDeltas and the linear layers' factors) equals functional_call with
+    theta_s."""
     from geonav.policy.batched.core import Factors, SlotDeltas
 
-    model, images = cnn_setup
+    model, images = request.getfixturevalue(kind)
     g = torch.Generator().manual_seed(b)
     phi = dict(model.named_parameters())
     delta = {n[len("encoder."):]: 0.05 * torch.randn(b, *p.shape, generator=g,

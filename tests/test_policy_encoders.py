@@ -78,3 +78,28 @@ def test_one_encoder_serves_envs_on_different_scenes():
     scene = textured_scene(300.0, seed=0, towers=False)
     _, info = GeoNavEnv(scene, tiny_taskset(scene)).reset(seed=0, options={"start_cell": (0, 0)})
     assert info["task_key"] == infos[0]["task_key"]
+
+
+def test_nature_cnn_sizes_and_refusals():
+    """NetConfig.cnn='nature': three convolutions (32/64/64) whose feature width the
+    network's embeddings are built for; too-small views and unknown kinds are refused."""
+    import pytest
+    import torch
+
+    from geonav.errors import ConfigError
+    from geonav.policy.config import NetConfig
+    from geonav.policy.encoders import feature_dim
+    from geonav.policy.model import ActorCritic
+
+    for px, width in ((64, 1024), (84, 3136)):
+        cfg = NetConfig(obs_size_px=px, cnn="nature")
+        model = ActorCritic(cfg)
+        assert feature_dim(cfg) == width == model.obs_embed.in_features
+        assert model.encoder.conv3 is not None
+        feats = model.features(torch.zeros(2, px, px, 3, dtype=torch.uint8))
+        assert feats.shape == (2, width)
+    assert ActorCritic(NetConfig(obs_size_px=64)).encoder.conv3 is None  # default: small
+    with pytest.raises(ConfigError, match="36 px"):
+        NetConfig(obs_size_px=32, cnn="nature")
+    with pytest.raises(ConfigError, match="cnn must be one of"):
+        NetConfig(cnn="resnet")

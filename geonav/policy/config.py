@@ -19,6 +19,7 @@ without ``--episodes``, or ``total_steps`` without ``episodes`` in a TOML table)
 steps are the budget (:func:`step_budget_first`)."""
 INITS = ("orthogonal", "savn")
 INPUT_NORMS = ("center", "none")
+CNN_KINDS = ("small", "nature")
 
 
 @dataclass(frozen=True)
@@ -31,6 +32,10 @@ class NetConfig:
     'corr' (frozen and parameter-free: each view's features are its normalised
     cross-correlation with the episode's target view over ``corr_radius`` shifts; beyond
     the paper, see docs/learning.md §8)."""
+    cnn: str = "small"
+    """Layers of the trainable CNN (encoder='cnn'): 'small' (two convolutions, 16 and 32
+    channels; the default) or 'nature' (three, 32/64/64, SB3's NatureCNN); see
+    docs/learning.md §14."""
     encoder_weights: str | None = None
     """ResNet18 weights: a local state_dict file; None downloads torchvision's pretrained ones."""
     obs_size_px: int = 84
@@ -86,6 +91,11 @@ class NetConfig:
             raise ConfigError(f"obs_size_px must be within 16..1024, got {self.obs_size_px}")
         if self.input_norm not in INPUT_NORMS:
             raise ConfigError(f"input_norm must be one of {INPUT_NORMS}, not {self.input_norm!r}")
+        if self.cnn not in CNN_KINDS:
+            raise ConfigError(f"cnn must be one of {CNN_KINDS}, not {self.cnn!r}")
+        if self.encoder == "cnn" and self.cnn == "nature" and self.obs_size_px < 36:
+            raise ConfigError(f"the 'nature' CNN needs views of >= 36 px, got "
+                              f"{self.obs_size_px}")
         if self.init not in INITS:
             raise ConfigError(f"init must be one of {INITS}, not {self.init!r}")
         if self.actor_init_std is not None and not self.actor_init_std > 0:

@@ -32,7 +32,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from geonav.errors import CheckpointError, ConfigError, MissingExtra
-from geonav.policy.config import NetConfig
+from geonav.policy.config import CNN_KINDS, NetConfig
 
 log = logging.getLogger(__name__)
 
@@ -67,27 +67,42 @@ def images_to_float(images: torch.Tensor, input_norm: str = "none",
 
 
 class SmallCNN(nn.Module):
-    """Two strided convolutions (Mnih et al. 2013 sizes): (B, N, N, 3) uint8 -> (B, F).
+    """The trainable image encoder: (B, N, N, 3) uint8 -> (B, F).
 
-    At 84 px: 8x8/4 -> 16x20x20, 4x4/2 -> 32x9x9, F = 2592.
+    ``kind='small'``: two strided convolutions (Mnih et al. 2013 sizes): at 84 px 8x8/4 ->
+    16x20x20, 4x4/2 -> 32x9x9, F = 2592; at 64 px F = 1152. ``kind='nature'``: the three
+    convolutions of Mnih et al. 2015 (SB3's NatureCNN without its linear layer, which the
+    actor-critic's view embeddings play): 8x8/4 -> 32, 4x4/2 -> 64, 3x3/1 -> 64; at 64 px
+    F = 1024, at 84 px F = 3136.
     """
 
-    def __init__(self, obs_size_px: int, input_norm: str = "center") -> None:
+    def __init__(self, obs_size_px: int, input_norm: str = "center", kind: str = "small"
+                 ) -> None:
         super().__init__()
+        if kind not in CNN_KINDS:
+            raise ConfigError(f"cnn must be one of {CNN_KINDS}, not {kind!r}")
         self.input_norm = input_norm
-        self.conv1 = nn.Conv2d(3, 16, kernel_size=8, stride=4)
-        self.conv2 = nn.Conv2d(16, 32, kernel_size=4, stride=2)
-        s1 = (obs_size_px - 8) // 4 + 1
-        s2 = (s1 - 4) // 2 + 1
-        if s2 < 1:
-            raise ConfigError(f"obs_size_px {obs_size_px} is too small for the CNN (>= 16)")
-        self.out_dim = 32 * s2 * s2
+        wide = kind == "nature"
+        self.conv1 = nn.Conv2d(3, 32 if wide else 16, kernel_size=8, stride=4)
+        self.conv2 = nn.Conv2d(self.conv1.out_channels, 64 if wide else 32, kernel_size=4,
+                               stride=2)
+        self.conv3 = nn.Conv2d(64, 64, kernel_size=3, stride=1) if wide else None
+        s = (obs_size_px - 8) // 4 + 1
+        s = (s - 4) // 2 + 1
+        if wide:
+            s = s - 2
+        if s < 1:
+            raise ConfigError(f"obs_size_px {obs_size_px} is too small for the {kind} CNN "
+                              f"(>= {36 if wide else 16})")
+        self.out_dim = (64 if wide else 32) * s * s
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         x = images_to_float(images, self.input_norm, self.conv1.weight.dtype) \
             if images.dtype == torch.uint8 else images
         x = torch.relu(self.conv1(x))
         x = torch.relu(self.conv2(x))
+        if self.conv3 is not None:
+            x = torch.relu(self.conv3(x))
         return x.flatten(1)
 
 
@@ -316,7 +331,8 @@ def build_frozen_encoder(cfg: NetConfig) -> FrozenEncoder | None:
 def feature_dim(cfg: NetConfig) -> int:
     """Width F of the encoder output for a config (without building ResNet)."""
     if cfg.encoder in ("cnn", "random"):
-        return SmallCNN(cfg.obs_size_px).out_dim
+        return SmallCNN(cfg.obs_size_px, kind=cfg.cnn if cfg.encoder == "cnn" else "small"
+                        ).out_dim
     if cfg.encoder == "corr":
         return (2 * cfg.corr_radius + 1) ** 2
     return 512

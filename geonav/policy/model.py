@@ -74,7 +74,7 @@ class ActorCritic(nn.Module):
     def __init__(self, cfg: NetConfig) -> None:
         super().__init__()
         self.cfg = cfg
-        self.encoder: SmallCNN | None = SmallCNN(cfg.obs_size_px, cfg.input_norm) \
+        self.encoder: SmallCNN | None = SmallCNN(cfg.obs_size_px, cfg.input_norm, cfg.cnn) \
             if cfg.encoder == "cnn" else None
         fdim = feature_dim(cfg)
         self.obs_embed = nn.Linear(fdim, cfg.embed_dim)
