@@ -77,8 +77,25 @@ def _cnn_setup(kind, px):
     return model, images
 
 
+@pytest.fixture(scope="module")
+def ff_setup():
+    """The feed-forward network (NetConfig.recurrent=False: no LSTM, no previous-action
+    input) on a frozen feature table."""
+    from dataclasses import replace
+
+    torch.manual_seed(4)
+    model = ActorCritic(replace(tiny_net("random", 32, size=16), recurrent=False)).double()
+    with torch.no_grad():
+        model.actor.weight.mul_(5.0)
+        model.actor.bias.normal_()
+        model.critic.bias.normal_()
+    g = torch.Generator().manual_seed(5)
+    table = torch.rand(12, model.obs_embed.in_features, generator=g, dtype=torch.float64)
+    return model, table
+
+
 def _nets(request, kind):
-    return request.getfixturevalue("cnn_setup" if kind == "cnn" else "setup")
+    return request.getfixturevalue({"cnn": "cnn_setup", "ff": "ff_setup"}.get(kind, "setup"))
 
 
 def _feats(model, params, adapted, table, rows, rec=None):
@@ -106,9 +123,9 @@ def _ref_slot(model, params, table, views, target, state):
     return logits[:, 0], values[:, 0], end
 
 
-@pytest.mark.parametrize("b", [1, 5])
-def test_sequence_forward_equals_module(setup, b):
-    model, table = setup
+@pytest.mark.parametrize("b,kind", [(1, "random"), (5, "random"), (5, "ff")])
+def test_sequence_forward_equals_module(request, b, kind):
+    model, table = _nets(request, kind)
     g = torch.Generator().manual_seed(b)
     T = 7
     views = torch.randint(0, table.shape[0], (T, b), generator=g)
@@ -277,7 +294,7 @@ def _ref_window(model, table, data, n_steps, k_segs, alpha, second_order, old=No
 
 @pytest.mark.parametrize("b,gram,kind", [(1, False, "random"), (5, False, "random"),
                                          (5, True, "random"), (1, False, "cnn"),
-                                         (5, False, "cnn")])
+                                         (5, False, "cnn"), (5, False, "ff")])
 def test_inner_updates_equal_functional_call(request, b, gram, kind):
     """Per-slot adapted weights after each inner step equal theta - alpha grad (dense),
     the trainable CNN's included."""
@@ -309,7 +326,7 @@ def test_inner_updates_equal_functional_call(request, b, gram, kind):
 @pytest.mark.parametrize("b,second_order,gram,kind", [
     (1, True, False, "random"), (5, True, False, "random"), (5, False, False, "random"),
     (5, True, True, "random"), (5, False, True, "random"), (1, True, False, "cnn"),
-    (5, True, False, "cnn"), (5, False, False, "cnn")])
+    (5, True, False, "cnn"), (5, False, False, "cnn"), (5, True, False, "ff")])
 def test_window_gradient_equals_functional_call(request, b, second_order, gram, kind):
     """ISAR's window gradient w.r.t. phi (second and first order), summed over slots; the
     view embeddings' factors dense or as table rows with the Gram matrix; the trainable

@@ -1,4 +1,5 @@
-"""Batched PPO: the recurrent recompute matches acting, and it learns the tiny task."""
+"""Batched PPO: the recurrent recompute matches acting, and it learns the tiny task; the
+feed-forward network (NetConfig.recurrent=False) with single-step minibatches likewise."""
 
 from dataclasses import replace
 
@@ -50,6 +51,46 @@ def test_learns_tiny_task():
     t = BatchedPPOTrainer(factory, tiny_net("random", 32),
                           PPOConfig(episodes=1000, lr=3e-3, seed=0), batch=16,
                           tensorboard=False)
+    res = t.train()
+    sr, rnd = greedy_sr(res.model, t.frozen, env), random_sr(env)
+    assert sr >= rnd + 0.4, (sr, rnd)
+
+
+@pytest.mark.parametrize("encoder", ["random", "cnn"])
+def test_feed_forward_flat_minibatches_match_acting(encoder):
+    """NetConfig.recurrent=False: the rollout seen as T x B single steps (flat_steps, PPO's
+    minibatches of single steps) recomputes the acting log-probabilities and values, and
+    the network has no LSTM and no previous-action input."""
+    from geonav.policy.batched.ppo import flat_steps
+
+    px = 20 if encoder == "cnn" else 32
+    net = replace(tiny_net(encoder, px, size=16), recurrent=False)
+    t = BatchedPPOTrainer(tiny_env_factory(max_steps=5, obs_size_px=px), net,
+                          PPOConfig(episodes=10), batch=6, tensorboard=False)
+    assert t.model.lstm is None and t.model.action_embed is None
+    t._setup()
+    t.collect(7, keep_policy=True)
+    ro, finals = t.collect(12, keep_policy=True)
+    assert finals
+    returns, advantages = t.advantages(ro, ro.values)
+    flat, fret, fadv = flat_steps(ro, returns, advantages)
+    assert flat.view_idx.shape == (1, 72) and fret.shape == fadv.shape == (1, 72)
+    cols = torch.tensor([0, 13, 40, 71])  # column s * T + t
+    s, step = cols // 12, cols % 12
+    logits, values = t.recompute(flat, cols)
+    logp = torch.log_softmax(logits, -1).gather(-1, flat.actions[:, cols, None])[..., 0]
+    torch.testing.assert_close(logp[0], ro.logprobs[step, s], atol=1e-5, rtol=0)
+    torch.testing.assert_close(values[0], ro.values[step, s], atol=1e-5, rtol=0)
+    torch.testing.assert_close(fadv[0, cols], advantages[step, s])
+
+
+def test_feed_forward_learns_tiny_task():
+    """The feed-forward network learns the tiny task with single-step minibatches."""
+    factory = tiny_env_factory(cells=4, max_steps=7)
+    env = factory()
+    net = replace(tiny_net("random", 32), recurrent=False)
+    t = BatchedPPOTrainer(factory, net, PPOConfig(episodes=1000, lr=3e-3, seed=0,
+                                                  minibatches=8), batch=16, tensorboard=False)
     res = t.train()
     sr, rnd = greedy_sr(res.model, t.frozen, env), random_sr(env)
     assert sr >= rnd + 0.4, (sr, rnd)

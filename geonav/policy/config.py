@@ -69,6 +69,12 @@ class NetConfig:
     for 'savn'. At 0.01 the policy gradient reaching the image layers is 100x smaller
     than the critic's and a state-blind action bias wins (issue 10); 1.0 lets the
     image-dependent part of the policy learn first."""
+    recurrent: bool = True
+    """True: the paper's network (an LSTM cell after the FC layer, fed the previous action
+    probabilities). False: no LSTM and no previous-action input; the FC layer's output
+    feeds the heads, so the policy is a function of the current and target views alone
+    (enough on geonav's fully observed tasks), and PPO can draw its minibatches from single
+    steps instead of whole slot sequences (docs/learning.md §14)."""
     prev_view_input: bool = False
     """Add the extra input slot E(o^prev) (ALGORITHMS.md (e), option B): the encoder features
     of the view at the same cell at the previous curriculum stage's altitude, embedded by

@@ -82,12 +82,16 @@ class ActorCritic(nn.Module):
         # Only registered when on: without it, parameter names and shapes are the original ones.
         self.prev_embed: nn.Linear | None = nn.Linear(fdim, cfg.embed_dim) \
             if cfg.prev_view_input else None
-        self.action_embed = nn.Linear(cfg.n_actions, cfg.action_embed_dim)
-        self.fc = nn.Linear(self.n_view_slots * cfg.embed_dim + cfg.action_embed_dim,
-                            cfg.hidden_size)
-        self.lstm = nn.LSTMCell(cfg.hidden_size, cfg.lstm_size)
-        self.actor = nn.Linear(cfg.lstm_size, cfg.n_actions)
-        self.critic = nn.Linear(cfg.lstm_size, 1)
+        # Feed-forward (recurrent=False): no previous-action input and no LSTM.
+        self.action_embed: nn.Linear | None = nn.Linear(cfg.n_actions, cfg.action_embed_dim) \
+            if cfg.recurrent else None
+        self.fc = nn.Linear(self.n_view_slots * cfg.embed_dim
+                            + (cfg.action_embed_dim if cfg.recurrent else 0), cfg.hidden_size)
+        self.lstm: nn.LSTMCell | None = nn.LSTMCell(cfg.hidden_size, cfg.lstm_size) \
+            if cfg.recurrent else None
+        head_in = cfg.lstm_size if cfg.recurrent else cfg.hidden_size
+        self.actor = nn.Linear(head_in, cfg.n_actions)
+        self.critic = nn.Linear(head_in, 1)
         self.reset_parameters()
 
     def reset_parameters(self) -> None:
@@ -99,11 +103,13 @@ class ActorCritic(nn.Module):
                 if isinstance(m, (nn.Linear, nn.Conv2d)):
                     nn.init.orthogonal_(m.weight, math.sqrt(2.0))
                     nn.init.zeros_(m.bias)  # type: ignore[arg-type]
-            nn.init.orthogonal_(self.lstm.weight_ih)
-            nn.init.orthogonal_(self.lstm.weight_hh)
-        with torch.no_grad():
-            self.lstm.bias_ih.zero_()
-            self.lstm.bias_hh.zero_()
+            if self.lstm is not None:
+                nn.init.orthogonal_(self.lstm.weight_ih)
+                nn.init.orthogonal_(self.lstm.weight_hh)
+        if self.lstm is not None:
+            with torch.no_grad():
+                self.lstm.bias_ih.zero_()
+                self.lstm.bias_hh.zero_()
         actor_std = self.cfg.actor_init_std
         if actor_std is None:
             actor_std = 0.01 if self.cfg.init == "savn" else 1.0
@@ -176,8 +182,13 @@ class ActorCritic(nn.Module):
         w = self.fc.weight
         k = len(parts) * self.cfg.embed_dim
         pre = F.linear(torch.cat(parts, dim=-1), w[:, :k], self.fc.bias)  # (T, B, H)
-        w_act = w[:, k:]  # sliced once: one SliceBackward per call, not one per step
         h, c, p = state
+        if self.lstm is None:  # feed-forward: the heads read the FC layer's output
+            x = F.relu(pre)
+            logits = self.actor(x)
+            return logits, self.critic(x).squeeze(-1), (h, c, F.softmax(logits[-1], dim=-1))
+        assert self.action_embed is not None
+        w_act = w[:, k:]  # sliced once: one SliceBackward per call, not one per step
         hs = []
         logits_steps = []
         for t in range(T):

@@ -488,14 +488,20 @@ def core_step(params: Params, embed_dim: int, state: State, *,
     factored FC layer.
     """
     h, c, p = state
-    act_e = F.relu(linear(params, "action_embed", p, adapted, rec))
+    recurrent = "lstm.weight_ih" in params  # NetConfig.recurrent
+    act_e = [F.relu(linear(params, "action_embed", p, adapted, rec))] if recurrent else []
     w = params["fc.weight"]
     if pre is not None:
-        x = F.relu(pre + affine(act_e, w[..., view_slots(params) * embed_dim:]))
+        x = F.relu(pre + affine(act_e[0], w[..., view_slots(params) * embed_dim:])) \
+            if recurrent else F.relu(pre)
     else:
         assert obs_e is not None and tgt_e is not None
-        parts = [obs_e, tgt_e] + ([] if prev_e is None else [prev_e]) + [act_e]
+        parts = [obs_e, tgt_e] + ([] if prev_e is None else [prev_e]) + act_e
         x = F.relu(linear(params, "fc", torch.cat(parts, -1), adapted, rec))
+    if not recurrent:  # feed-forward: the heads read the FC layer's output
+        logit = linear(params, "actor", x, adapted, rec)
+        value = linear(params, "critic", x, adapted, rec).squeeze(-1)
+        return logit, value, (h, c, F.softmax(logit, dim=-1))
     gates = linear(params, "lstm_ih", x, adapted, rec)
     gates = gates + linear(params, "lstm_hh", h, adapted, None, back=rec)
     if rec is not None:  # the hidden matrix shares u = dL/dgates with the input matrix

@@ -103,6 +103,10 @@ class BatchedPPOTrainer(BatchedTrainer):
         ro, finals = self.collect(cfg.t_max, keep_policy=True)
         assert ro.values is not None
         returns, advantages = self.advantages(ro, ro.values)
+        if not self.net_cfg.recurrent and len(self.run_slices()) == 1:
+            # a feed-forward policy needs no sequences: minibatches of single steps
+            ro, returns, advantages = flat_steps(ro, returns, advantages)
+            b = ro.view_idx.shape[1]
         n_mb = min(cfg.minibatches, b)
         outs: list[dict[str, torch.Tensor]] = []
         for _ in range(cfg.epochs):  # each run's slots in its own order, from its own stream
@@ -119,4 +123,26 @@ class BatchedPPOTrainer(BatchedTrainer):
         return finals, stats[0] if len(stats) == 1 else stats
 
 
-__all__ = ["PPOConfig", "BatchedPPOTrainer"]
+def flat_steps(ro: RolloutBatch, returns: torch.Tensor, advantages: torch.Tensor
+               ) -> tuple[RolloutBatch, torch.Tensor, torch.Tensor]:
+    """A rollout of T steps of B slots as one step of T x B slots (column s * T + t), each
+    starting an episode from a zero state: for a feed-forward network (NetConfig.recurrent
+    False) the same logits and values, and PPO's minibatches become single steps drawn
+    across slots and times, as in SB3 (not whole, correlated slot sequences)."""
+    from dataclasses import replace
+
+    def flat(x: torch.Tensor) -> torch.Tensor:
+        return x.t().reshape(1, -1)
+
+    n = ro.view_idx.numel()
+    zero = tuple(torch.zeros(n, *x.shape[1:], dtype=x.dtype, device=x.device)
+                 for x in ro.start_state)
+    assert ro.logprobs is not None
+    out = replace(ro, start_state=zero, view_idx=flat(ro.view_idx),  # type: ignore[arg-type]
+                  target_idx=flat(ro.target_idx), actions=flat(ro.actions),
+                  starts=torch.ones(1, n, dtype=torch.bool, device=ro.starts.device),
+                  logprobs=flat(ro.logprobs))
+    return out, flat(returns), flat(advantages)
+
+
+__all__ = ["PPOConfig", "BatchedPPOTrainer", "flat_steps"]
