@@ -122,7 +122,9 @@ def test_target_outside_fence_is_never_sent(scene: Any, tmp_path: Path, caplog: 
     lattice = _lattice(scene)
     home = lattice.center(START)
     max_dist = 11.0  # two 5 m steps east are inside, the third is not
-    with _emulator(scene, "px4") as emu, caplog.at_level(logging.ERROR):
+    # Issue 36: the result line is the one line at the default level; the bridge logs
+    # how the flight ended at INFO (geonav -v).
+    with _emulator(scene, "px4") as emu, caplog.at_level(logging.INFO):
         result = _fly_target(scene, emu, tmp_path, max_dist)
         assert not result.success
         assert "geofence" in result.reason or "from home" in result.reason
@@ -162,7 +164,9 @@ class _Hook(ScriptedPolicy):
 
 
 def test_link_loss_ends_in_landing(scene: Any, tmp_path: Path, caplog: Any) -> None:
-    with _emulator(scene, "px4") as emu, caplog.at_level(logging.ERROR):
+    # Issue 36: the result line is the one line at the default level; the bridge logs
+    # how the flight ended at INFO (geonav -v).
+    with _emulator(scene, "px4") as emu, caplog.at_level(logging.INFO):
         policy = _Hook(path_actions(START, TARGET), 1, lambda: emu.drop_link(2.5))
         result = _fly(
             scene,
@@ -221,7 +225,9 @@ def test_prearm_failures_are_retried_until_ready(scene: Any, tmp_path: Path) -> 
 
 
 def test_stalled_policy_stops_setpoints_and_lands(scene: Any, tmp_path: Path, caplog: Any) -> None:
-    with _emulator(scene, "px4") as emu, caplog.at_level(logging.ERROR):
+    # Issue 36: the result line is the one line at the default level; the bridge logs
+    # how the flight ended at INFO (geonav -v).
+    with _emulator(scene, "px4") as emu, caplog.at_level(logging.INFO):
         policy = _Hook(path_actions(START, TARGET), 1, lambda: None, delay_s=2.5)
         result = _fly(scene, emu, policy, "pymavlink", tmp_path, policy_deadline_s=0.8)
         assert not result.success

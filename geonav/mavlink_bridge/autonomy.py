@@ -166,6 +166,7 @@ def _one_step(ctx: FlightContext, previous: ScenePoint) -> ScenePoint:
     state = ctx.vehicle.state()
     ctx.watchdog.check(state)
     ctx.check_position(state)
+    ctx.check_battery(state)  # no new step on a battery below --min-battery
     t_frame = time.perf_counter()
     image = ctx.frames.frame(state)
     action = int(ctx.policy.act(image, ctx.target_img))
@@ -200,12 +201,14 @@ def _one_step(ctx: FlightContext, previous: ScenePoint) -> ScenePoint:
     arrival_s, measured = wait_arrival(ctx, ned, step_timeout_s(ctx))
     m_scene, m_alt = ctx.planner.to_scene(measured)
     ctx.cell = nxt_cell
+    ctx.flown_steps += 1
     ctx.rec.write(
         "step", **base, cell=ctx.cell, target_scene=(nxt.x_m, nxt.y_m),
         target_ned=(ned.north_m, ned.east_m, ned.down_m),
         measured_ned=(measured.north_m, measured.east_m, measured.down_m),
         measured_scene=(m_scene.x_m, m_scene.y_m), measured_alt_m=m_alt,
-        arrival_s=round(arrival_s, 3), latency_ms=round(latency_ms, 3), events=[],
+        arrival_s=round(arrival_s, 3), latency_ms=round(latency_ms, 3),
+        battery_pct=ctx.vehicle.state().battery_pct, events=[],
     )
     ctx.steps = n
     return nxt

@@ -3,8 +3,12 @@
 Thin: parses arguments, calls :func:`geonav.mavlink_bridge.flight.fly` or the
 emulator, and prints a one-line result (the CLI is the only place that prints).
 ``geonav fly`` exits with the flight's outcome code: 0 reached, 1 missed, 2 bad
-input, 3 refused before arming, 4 link lost, 5 operator took over, 6 safety
-stop, 128 + N when signal N (SIGINT 130, SIGHUP 129, SIGTERM 143) ended it.
+input, 3 refused before arming, 4 link lost, 5 an operator took over (a mode change
+by an RC pilot or a GCS), 6 safety stop (geonav landed: fence, obstacle, battery below
+--min-battery, a stalled policy...), 7 autopilot failsafe (the autopilot changed the
+mode itself: its battery, fence, GPS/EKF or link failsafe), 8 position lost (geonav
+stopped commanding and left the vehicle to the autopilot's failsafe), 128 + N when
+signal N (SIGINT 130, SIGHUP 129, SIGTERM 143) ended it.
 """
 
 from __future__ import annotations
@@ -50,82 +54,8 @@ def _lonlat(text: str) -> Any:
 def add_parser(subparsers: Any) -> None:
     """Register ``fly``, ``emulator`` and ``mavlink emulate``."""
     p = subparsers.add_parser("fly", help="fly a checkpoint on PX4/ArduPilot over MAVLink")
-    p.add_argument("checkpoint", help="policy checkpoint (.pt)")
-    p.add_argument("--scene", required=True, help="scene package folder")
-    p.add_argument("--connect", help="udpin:0.0.0.0:14540, tcp:127.0.0.1:5760, /dev/ttyACM0:921600")
-    p.add_argument("--backend", choices=("pymavlink", "mavsdk"), default="pymavlink")
-    p.add_argument("--camera", default="synthetic", help="synthetic, opencv:0 or rtsp://...")
-    p.add_argument("--start", type=_cell, help="start cell IX,IY (default: under take-off)")
-    p.add_argument(
-        "--target",
-        type=_cell,
-        help="target cell IX,IY: over the scene bounds, or in the --task lattice "
-        "(a task file's target_cell as is)",
-    )
-    p.add_argument(
-        "--task",
-        help="task file FILE[:NAME] (geonav tasks): region, step, altitude, target, "
-        "step budget and obstacle model",
-    )
-    p.add_argument(
-        "--alt",
-        type=altitude_m,
-        help="flight altitude above take-off, m (default: the policy's; required for a "
-        "policy trained at several altitudes)",
-    )
-    p.add_argument(
-        "--max-alt",
-        type=altitude_m,
-        default=120.0,
-        help="altitude ceiling, m; a higher --alt/policy altitude is clamped with a warning",
-    )
-    p.add_argument("--end", choices=("land", "rtl"), default="land")
-    p.add_argument("--dry-run", action="store_true", help="fly against an in-process emulator")
-    p.add_argument(
-        "--autopilot",
-        choices=("px4", "ardupilot"),
-        default="px4",
-        help="emulator flavour for --dry-run",
-    )
-    p.add_argument(
-        "--max-steps", type=positive_int, help="step budget (default: the task's, or 70)"
-    )
-    p.add_argument(
-        "--max-distance",
-        type=positive_float,
-        default=float("inf"),
-        help="geofence radius around home, metres",
-    )
-    p.add_argument(
-        "--fence-margin",
-        type=nonneg_float,
-        help="setpoints stay this far inside the scene, m (default: one lattice step); "
-        "the vehicle may overshoot half of it before the flight ends",
-    )
-    p.add_argument(
-        "--on-obstacle",
-        choices=("stay", "end"),
-        default="stay",
-        help="a move into a DSM obstacle cell: refuse and keep position (as the env), or end",
-    )
-    p.add_argument(
-        "--takeover-airborne",
-        action="store_true",
-        help="accept a vehicle that is already armed and flying (its position and "
-        "altitude are the start); without it geonav refuses such a vehicle",
-    )
-    p.add_argument(
-        "--connect-timeout",
-        type=positive_float,
-        default=30.0,
-        help="seconds to wait for the autopilot (TCP/serial connects are retried)",
-    )
-    p.add_argument(
-        "--set-origin",
-        action="store_true",
-        help="send SET_GPS_GLOBAL_ORIGIN at the scene origin (GPS-less vehicles)",
-    )
-    p.add_argument("--out", default="flight", help="folder for flight.jsonl and track.png")
+    _flight_args(p)
+    _safety_args(p)
     p.set_defaults(handler=run_fly)
 
     for name in ("emulator",):
@@ -135,6 +65,67 @@ def add_parser(subparsers: Any) -> None:
     m.set_defaults(handler=needs_subcommand(m))
     msub = m.add_subparsers(dest="mavlink_command", metavar="TOOL")
     _emulator_args(msub.add_parser("emulate", help="run the MAVLink vehicle emulator"))
+
+
+def _flight_args(p: argparse.ArgumentParser) -> None:
+    """What to fly, where, and how to connect."""
+    p.add_argument("checkpoint", help="policy checkpoint (.pt)")
+    p.add_argument("--scene", required=True, help="scene package folder")
+    p.add_argument("--connect", help="udpin:0.0.0.0:14540, tcp:127.0.0.1:5760, /dev/ttyACM0:921600")
+    p.add_argument("--backend", choices=("pymavlink", "mavsdk"), default="pymavlink")
+    p.add_argument("--camera", default="synthetic", help="synthetic, opencv:0 or rtsp://...")
+    p.add_argument("--start", type=_cell, help="start cell IX,IY (default: under take-off)")
+    p.add_argument("--target", type=_cell,
+                   help="target cell IX,IY: over the scene bounds, or in the --task lattice "
+                   "(a task file's target_cell as is)")
+    p.add_argument("--task", help="task file FILE[:NAME] (geonav tasks): region, step, "
+                   "altitude, target, step budget and obstacle model")
+    p.add_argument("--alt", type=altitude_m,
+                   help="flight altitude above take-off, m (default: the policy's; required "
+                   "for a policy trained at several altitudes)")
+    p.add_argument("--end", choices=("land", "rtl"), default="land")
+    p.add_argument("--dry-run", action="store_true", help="fly against an in-process emulator")
+    p.add_argument("--autopilot", choices=("px4", "ardupilot"), default="px4",
+                   help="emulator flavour for --dry-run")
+    p.add_argument("--max-steps", type=positive_int,
+                   help="step budget (default: the task's, or 70)")
+    p.add_argument("--connect-timeout", type=positive_float, default=30.0,
+                   help="seconds to wait for the autopilot (TCP/serial connects are retried)")
+    p.add_argument("--set-origin", action="store_true",
+                   help="send SET_GPS_GLOBAL_ORIGIN at the scene origin (GPS-less vehicles)")
+    p.add_argument("--out", default="flight", help="folder for flight.jsonl and track.png")
+
+
+def _safety_args(p: argparse.ArgumentParser) -> None:
+    """Fences, battery, obstacles, taking over."""
+    p.add_argument("--max-alt", type=altitude_m, default=120.0,
+                   help="altitude ceiling, m; a higher --alt/policy altitude is clamped with "
+                   "a warning")
+    p.add_argument("--max-distance", type=positive_float, default=float("inf"),
+                   help="geofence radius around home, metres")
+    p.add_argument("--fence-margin", type=nonneg_float,
+                   help="setpoints stay this far inside the scene, m (default: one lattice "
+                   "step); the vehicle may overshoot half of it before the flight ends")
+    p.add_argument("--no-autopilot-fence", dest="autopilot_fence", action="store_false",
+                   help="do not give the autopilot the scene's fence (by default it gets "
+                   "it, with --end as its breach action, and it is cleared after landing)")
+    p.add_argument("--min-battery", type=_percent, default=25.0, metavar="PCT",
+                   help="refuse to arm below this battery charge, and end the flight with "
+                   "--end when it drops below it (default 25, above PX4's 15%% low and 7%% "
+                   "critical levels; 0: off)")
+    p.add_argument("--on-obstacle", choices=("stay", "end"), default="stay",
+                   help="a move into a DSM obstacle cell: refuse and keep position (as the "
+                   "env), or end")
+    p.add_argument("--takeover-airborne", action="store_true",
+                   help="accept a vehicle that is already armed and flying (its position and "
+                   "altitude are the start); without it geonav refuses such a vehicle")
+
+
+def _percent(text: str) -> float:
+    value = nonneg_float(text)
+    if value >= 100:
+        raise argparse.ArgumentTypeError(f"{text!r} must be a percentage below 100")
+    return value
 
 
 def _emulator_args(e: argparse.ArgumentParser) -> None:
@@ -193,6 +184,8 @@ def run_fly(args: argparse.Namespace) -> int:
         max_alt_m=args.max_alt,
         on_obstacle=args.on_obstacle,
         takeover_airborne=args.takeover_airborne,
+        min_battery_pct=args.min_battery,
+        autopilot_fence=args.autopilot_fence,
         timeouts=Timeouts(connect_s=args.connect_timeout),
         plot=False,
     )

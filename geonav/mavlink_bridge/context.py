@@ -6,8 +6,8 @@ phases that each do one job (:mod:`~geonav.mavlink_bridge.preflight`,
 hand each other this record: the vehicle, the plan, the record being written, what
 preflight placed (frame conversion, fence, start and target), the safety machinery
 (watchdog, setpoint pump), and the progress so far (phase, cell, steps). Its small
-methods are the checks every phase runs while the vehicle moves: the track sample and
-the measured-position fence.
+methods are the checks every phase runs while the vehicle moves: the track and
+battery samples, the measured-position fence and the battery floor.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from geonav.mavlink_bridge.conversion import TargetPlanner
 from geonav.mavlink_bridge.plan import Cell, FlightConfig, FlightPlan, plan_flight
 from geonav.mavlink_bridge.pump import SetpointPump
 from geonav.mavlink_bridge.record import FlightRecorder
-from geonav.mavlink_bridge.safety import Geofence, Watchdog
+from geonav.mavlink_bridge.safety import BatteryLow, Geofence, Watchdog
 from geonav.mavlink_bridge.sequence import Timeouts
 from geonav.mavlink_bridge.vehicle import Vehicle, VehicleState
 
@@ -53,6 +53,8 @@ class FlightContext:
         start_cell, start_pt, target_pt, target_img: the start, the target and its view.
         cell: the cell the vehicle is over (None before the start cell is reached).
         steps: policy steps done (see :func:`~geonav.mavlink_bridge.autonomy.step_loop`).
+        flown_steps: steps that moved the vehicle to a new cell.
+        fence_uploaded: the autopilot holds geonav's fence (to be cleared at the end).
         latencies_ms: frame -> setpoint latency per step.
         notes: warnings the operator must see (altitude clamp, obstacle refusals).
     """
@@ -79,6 +81,8 @@ class FlightContext:
     target_img: np.ndarray | None = None
     cell: Cell | None = None
     steps: int = 0
+    flown_steps: int = 0
+    fence_uploaded: bool = False
     latencies_ms: list[float] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     _last_sample_t: float = 0.0
@@ -115,6 +119,9 @@ class FlightContext:
         )
         for note in ctx.notes:
             rec.event(note)
+        # The autopilot's own messages go into the record as they come (folded).
+        vehicle.on_statustext = lambda severity, text: rec.write(
+            "statustext", severity=severity, text=text)
         return ctx
 
     # ------------------------------------------------------------------ views
@@ -140,13 +147,30 @@ class FlightContext:
 
     # ----------------------------------------------------- checks while moving
     def sample(self, s: VehicleState, phase_name: str | None = None) -> None:
-        """Record the measured track (every phase: climb, steps, return, landing)."""
+        """Record the measured track and the battery (every phase: climb, steps, return,
+        landing)."""
         now = time.monotonic()
-        if self.planner is None or s.position is None or now - self._last_sample_t < 0.1:
+        if now - self._last_sample_t < 0.1:
             return
         self._last_sample_t = now
+        self.rec.battery(s.battery_pct, s.battery_v)
+        if self.planner is None or s.position is None:
+            return
         p, alt = self.planner.to_scene(s.position)
         self.rec.sample(p.x_m, p.y_m, phase_name or self.phase, alt)
+
+    def check_battery(self, s: VehicleState) -> None:
+        """The battery against ``--min-battery``.
+
+        Raises:
+            BatteryLow: below it: the flight ends with the end action.
+        """
+        floor = self.cfg.min_battery_pct
+        if floor > 0 and s.battery_pct is not None and s.battery_pct < floor:
+            raise BatteryLow(
+                f"battery at {s.battery_pct:.0f}% is below --min-battery {floor:g}%"
+                + (f" ({s.battery_v:.2f} V)" if s.battery_v is not None else "")
+            )
 
     def check_position(self, s: VehicleState) -> None:
         """The measured position against the fence (widened by the overshoot allowance).
@@ -174,7 +198,9 @@ class FlightContext:
             raise SafetyViolation(f"setpoint altitude {alt:.1f} m outside the altitude band")
 
     def in_flight_check(self) -> None:
-        """What runs in every wait while the vehicle moves: track sample, position fence."""
+        """What runs in every wait while the vehicle moves: track and battery samples,
+        position fence, battery floor."""
         st = self.vehicle.state()
         self.sample(st)
         self.check_position(st)
+        self.check_battery(st)

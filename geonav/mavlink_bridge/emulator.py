@@ -25,7 +25,14 @@ documented by PX4 and ArduPilot and observed on ArduCopter SITL
   ground, within ``DISARM_DELAY`` of arming.
 * COMMAND_ACK for every COMMAND_LONG/COMMAND_INT, AUTOPILOT_VERSION,
   HOME_POSITION, a minimal parameter protocol (what MAVSDK asks for).
-* Fault injection: link drop, arming refusal, GPS loss, operator mode change.
+* Battery (SYS_STATUS, BATTERY_STATUS) draining while armed, with each
+  autopilot's low and critical warnings and an optional battery failsafe; the
+  mission protocol for fence items, enforced with each autopilot's fence
+  parameters (PX4 ``GF_ACTION``, ArduPilot ``FENCE_ENABLE``/``FENCE_ACTION``);
+  PX4's STATUSTEXT only to a link that has a GCS or same-system onboard heartbeat;
+  the HEARTBEAT's CRITICAL while a failsafe is active.
+* Fault injection: link drop, arming refusal, GPS loss, operator mode change,
+  battery drop, a gust.
 
 Every delay is in emulated seconds and ``time_scale`` runs emulated time
 faster than the wall clock, so tests can fly whole missions in seconds.
@@ -65,6 +72,7 @@ from geonav.mavlink_bridge.emulator_handlers import HandlersMixin
 from geonav.mavlink_bridge.emulator_link import LinkMixin, Peer
 from geonav.mavlink_bridge.emulator_messages import MessagesMixin
 from geonav.mavlink_bridge.emulator_physics import PhysicsMixin
+from geonav.mavlink_bridge.emulator_safety import SafetyMixin
 from geonav.mavlink_bridge.frames import LocalFrame
 
 log = logging.getLogger(__name__)
@@ -72,7 +80,7 @@ log = logging.getLogger(__name__)
 __all__ = ["Emulator", "EmulatorConfig", "ReceivedCommand", "ReceivedSetpoint", "run_standalone"]
 
 
-class Emulator(HandlersMixin, MessagesMixin, PhysicsMixin, LinkMixin):
+class Emulator(HandlersMixin, SafetyMixin, MessagesMixin, PhysicsMixin, LinkMixin):
     """The emulated vehicle; runs in its own thread. Use as a context manager.
 
     Args:
@@ -128,6 +136,18 @@ class Emulator(HandlersMixin, MessagesMixin, PhysicsMixin, LinkMixin):
         self._pending_reply: str | None = None
         self._frame: LocalFrame | None = None
         self._closed = False
+        # Battery, failsafes, the uploaded fence, what the autopilot said.
+        self.battery = float(self.cfg.battery_pct)
+        self.failsafe = ""
+        self.fence_items: list[Any] = []
+        self.fence_breached = False
+        self.texts: list[tuple[float, int, str, bool]] = []
+        """(t, severity, text, sent) of every STATUSTEXT (sent False: the PX4 gate held it)."""
+        self.peer_heartbeat_ids: dict[tuple[int, int, int], float] = {}
+        """(system, component, MAV_TYPE) of every heartbeat heard -> when it was last heard."""
+        self._battery_warned = 0
+        self._gps_lost_at: float | None = None
+        self._upload: dict[str, Any] | None = None
         self._setup_streams()
         self._open_transport()
         if self.cfg.airborne_alt_m > 0:
@@ -184,13 +204,18 @@ class Emulator(HandlersMixin, MessagesMixin, PhysicsMixin, LinkMixin):
             self._refuse_arming = reason
 
     def lose_gps(self) -> None:
-        """Lose the position estimate: position streams stop, an airborne vehicle lands."""
+        """Lose GPS: no fix and no position estimate at once (the position streams stop);
+        in the air the autopilot's EKF failsafe lands ``gps_failsafe_s`` later."""
         with self._lock:
             self._gps_lost = True
+            self._gps_lost_at = self.t_s
             self._event("fault: GPS lost")
-            self._statustext(3, "EKF: position estimate lost")
-            if not self.landed:
-                self._set_mode("land", why="failsafe: no position")
+
+    def drain_battery(self, to_pct: float) -> None:
+        """The battery drops to ``to_pct`` at once (warnings and failsafe follow)."""
+        with self._lock:
+            self.battery = float(to_pct)
+            self._event(f"fault: battery at {to_pct:g}%")
 
     def operator_mode(self, name: str) -> None:
         """Change the mode as an RC pilot would (``hold`` is LOITER on ArduPilot)."""

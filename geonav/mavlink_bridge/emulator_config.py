@@ -67,6 +67,22 @@ class EmulatorConfig:
             this text (the HEARTBEAT then shows UNINIT, not STANDBY, and the
             text is repeated every 5 s, as PX4 SIH did after a landing with
             "Preflight: GPS Vertical Pos Drift too high"); "" for none.
+        battery_pct: battery charge at start, percent.
+        battery_drain_pct_per_s: charge used per second while armed.
+        battery_low_pct: below this the autopilot warns once (PX4 ``BAT_LOW_THR``,
+            ArduPilot ``BATT_LOW_MAH``); 0: never.
+        battery_critical_pct: below this it warns again and runs ``battery_failsafe``
+            (PX4 ``BAT_CRIT_THR``, ArduPilot ``BATT_CRT_MAH``).
+        battery_failsafe: ``"none"`` (a warning only: PX4's default
+            ``COM_LOW_BAT_ACT`` 0), ``"rtl"`` or ``"land"``; the HEARTBEAT then shows
+            CRITICAL, as both autopilots do while a failsafe is active.
+        gps_failsafe_s: after a GPS loss (:meth:`Emulator.lose_gps`) in the air, the
+            position estimate is gone at once and the autopilot lands this much later
+            (its EKF failsafe), showing CRITICAL.
+        statustext_gate: PX4 only: STATUSTEXT goes out only while a GCS heartbeat
+            (any system) or an onboard-controller heartbeat from the vehicle's own system
+            id was heard within 2.5 s (``streams/STATUSTEXT.hpp``,
+            ``mavlink_receiver.cpp``); ArduPilot always sends it.
     """
 
     autopilot: str = M.PX4
@@ -94,8 +110,17 @@ class EmulatorConfig:
     max_dt_s: float = 0.1
     airborne_alt_m: float = 0.0
     preflight_fail: str = ""
+    battery_pct: float = 100.0
+    battery_drain_pct_per_s: float = 0.0
+    battery_low_pct: float = 15.0
+    battery_critical_pct: float = 7.0
+    battery_failsafe: str = "none"
+    gps_failsafe_s: float = 2.0
+    statustext_gate: bool = True
 
     def __post_init__(self) -> None:
+        if self.battery_failsafe not in ("none", "rtl", "land"):
+            raise FlightError(f"battery_failsafe {self.battery_failsafe!r}: none, rtl or land")
         if self.autopilot not in (M.PX4, M.ARDUPILOT):
             raise FlightError(f"emulator autopilot {self.autopilot!r}: use 'px4' or 'ardupilot'")
         if self.time_scale <= 0:
@@ -172,6 +197,15 @@ class EmulatorFields:
     _param_overrides: dict[str, float]
     _pending_reply: str | None
     _frame: LocalFrame | None
+    battery: float
+    failsafe: str
+    fence_items: list[Any]
+    fence_breached: bool
+    texts: list[tuple[float, int, str, bool]]
+    peer_heartbeat_ids: dict[tuple[int, int, int], float]
+    _battery_warned: int
+    _gps_lost_at: float | None
+    _upload: dict[str, Any] | None
 
     _handle: Callable[[Any], None]
     _send: Callable[[Any], None]
@@ -185,6 +219,9 @@ class EmulatorFields:
     _send_home: Callable[[], None]
     _home_ned: Callable[[], np.ndarray]
     _build: Callable[[str], Any | None]
+    _safety_step: Callable[[float], None]
+    _mission: Callable[[str, Any], None]
+    _params: Callable[[], dict[str, float]]
     lonlat_of: Callable[..., LonLat]
 
     @property

@@ -17,6 +17,7 @@ import numpy as np
 from geonav.geo import LonLat
 from geonav.mavlink_bridge import modes as M
 from geonav.mavlink_bridge._mav import mavlink2
+from geonav.mavlink_bridge.backend_common import decode_param, encode_param
 from geonav.mavlink_bridge.emulator_config import (
     MSG_NAME,
     EmulatorFields,
@@ -30,95 +31,65 @@ class HandlersMixin(EmulatorFields):
     """Message handlers (mixed into :class:`Emulator`)."""
 
     def _handle(self, msg: Any) -> None:
+        """Dispatch one received message to its handler."""
         kind = msg.get_type()
-        if kind == "HEARTBEAT":
-            self.peer_heartbeats += 1
-        elif kind in ("COMMAND_LONG", "COMMAND_INT"):
-            if msg.target_system not in (0, self.cfg.system_id):
-                return
-            if msg.target_component not in (0, 1):
-                return
-            if kind == "COMMAND_LONG":
-                params = (
-                    msg.param1,
-                    msg.param2,
-                    msg.param3,
-                    msg.param4,
-                    msg.param5,
-                    msg.param6,
-                    msg.param7,
-                )
-            else:
-                params = (
-                    msg.param1,
-                    msg.param2,
-                    msg.param3,
-                    msg.param4,
-                    float(msg.x),
-                    float(msg.y),
-                    msg.z,
-                )
-            result = self._command(msg.command, params)
-            self.commands.append(
-                ReceivedCommand(
-                    self.t_s,
-                    msg.command,
-                    params,
-                    result,
-                    (msg.get_srcSystem(), msg.get_srcComponent()),
-                )
-            )
-            self._send(
-                self._mav.command_ack_encode(
-                    msg.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()
-                )
-            )
-            self._after_ack(msg.command, params, result)
-        elif kind == "SET_POSITION_TARGET_LOCAL_NED":
-            if msg.target_system not in (0, self.cfg.system_id):
-                return
-            self._setpoint(msg)
-        elif kind == "SET_GPS_GLOBAL_ORIGIN":
-            if self.origin is None:
-                self._set_origin(
-                    LonLat(msg.longitude / 1e7, msg.latitude / 1e7, msg.altitude / 1000.0),
-                    source="SET_GPS_GLOBAL_ORIGIN",
-                )
-                if not self.cfg.gps and self.origin is not None:
-                    self.home = self.origin
-                    self._send_home()
-            else:
-                self._event("SET_GPS_GLOBAL_ORIGIN ignored: origin already set")
-        elif kind == "REQUEST_DATA_STREAM":
-            # ArduPilot's legacy stream groups: 0 all, 2 extended status, 6 position.
-            interval = 1.0 / msg.req_message_rate if msg.req_message_rate > 0 else 0.0
-            if not msg.start_stop:
-                interval = 0.0
-            groups = {
-                0: [
-                    "LOCAL_POSITION_NED",
-                    "GLOBAL_POSITION_INT",
-                    "SYS_STATUS",
-                    "EXTENDED_SYS_STATE",
-                    "ATTITUDE",
-                    "GPS_RAW_INT",
-                ],
-                2: ["SYS_STATUS", "EXTENDED_SYS_STATE", "GPS_RAW_INT"],
-                6: ["LOCAL_POSITION_NED", "GLOBAL_POSITION_INT"],
-                10: ["ATTITUDE"],
-            }
-            for name in groups.get(msg.req_stream_id, []):
-                self._intervals[name] = interval
-        elif kind == "PARAM_REQUEST_LIST":
-            for i, (pid, val) in enumerate(self._params().items()):
-                self._send_param(pid, val, i)
-        elif kind == "PARAM_REQUEST_READ":
-            self._param_read(msg.param_id, msg.param_index)
-        elif kind == "PARAM_SET":
-            pid = msg.param_id
-            self._param_overrides[pid] = float(msg.param_value)
-            self._param_read(pid, -1)
+        target = getattr(msg, "target_system", 0)
+        if target not in (0, self.cfg.system_id):
+            return  # addressed to another system
+        handler = _HANDLERS.get(kind)
+        if handler is not None:
+            handler(self, msg)
+        elif kind.startswith("MISSION_"):
+            self._mission(kind, msg)
 
+    def _on_heartbeat(self, msg: Any) -> None:
+        self.peer_heartbeats += 1
+        self.peer_heartbeat_ids[(msg.get_srcSystem(), msg.get_srcComponent(), msg.type)] = (
+            self.t_s)
+
+    def _on_command(self, msg: Any) -> None:
+        if msg.target_component not in (0, 1):
+            return
+        if msg.get_type() == "COMMAND_LONG":
+            params = (msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6,
+                      msg.param7)
+        else:
+            params = (msg.param1, msg.param2, msg.param3, msg.param4, float(msg.x),
+                      float(msg.y), msg.z)
+        result = self._command(msg.command, params)
+        source = (msg.get_srcSystem(), msg.get_srcComponent())
+        self.commands.append(ReceivedCommand(self.t_s, msg.command, params, result, source))
+        self._send(self._mav.command_ack_encode(msg.command, result, 0, 0, *source))
+        self._after_ack(msg.command, params, result)
+
+    def _on_set_origin(self, msg: Any) -> None:
+        if self.origin is not None:
+            self._event("SET_GPS_GLOBAL_ORIGIN ignored: origin already set")
+            return
+        self._set_origin(
+            LonLat(msg.longitude / 1e7, msg.latitude / 1e7, msg.altitude / 1000.0),
+            source="SET_GPS_GLOBAL_ORIGIN",
+        )
+        if not self.cfg.gps and self.origin is not None:
+            self.home = self.origin
+            self._send_home()
+
+    def _on_request_data_stream(self, msg: Any) -> None:
+        # ArduPilot's legacy stream groups: 0 all, 2 extended status, 6 position.
+        interval = 1.0 / msg.req_message_rate if msg.req_message_rate > 0 else 0.0
+        if not msg.start_stop:
+            interval = 0.0
+        groups = {
+            0: ["LOCAL_POSITION_NED", "GLOBAL_POSITION_INT", "SYS_STATUS",
+                "EXTENDED_SYS_STATE", "ATTITUDE", "GPS_RAW_INT"],
+            2: ["SYS_STATUS", "EXTENDED_SYS_STATE", "GPS_RAW_INT"],
+            6: ["LOCAL_POSITION_NED", "GLOBAL_POSITION_INT"],
+            10: ["ATTITUDE"],
+        }
+        for name in groups.get(msg.req_stream_id, []):
+            self._intervals[name] = interval
+
+    # ------------------------------------------------------------- parameters
     def _params(self) -> dict[str, float]:
         cfg = self.cfg
         if self.flavour == M.PX4:
@@ -129,6 +100,8 @@ class HandlersMixin(EmulatorFields):
                 "MIS_TAKEOFF_ALT": 2.5,
                 "MPC_XY_VEL_MAX": cfg.max_speed_mps,
                 "NAV_DLL_ACT": 0.0,
+                "GF_ACTION": 2.0,
+                "GF_MAX_VER_DIST": 0.0,
             }
         else:
             base = {
@@ -137,25 +110,44 @@ class HandlersMixin(EmulatorFields):
                 "FS_GCS_ENABLE": 0.0,
                 "WPNAV_SPEED": cfg.max_speed_mps * 100,
                 "GUID_TIMEOUT": 3.0,
+                "FENCE_ENABLE": 0.0,
+                "FENCE_TYPE": 7.0,
+                "FENCE_ACTION": 1.0,
+                "FENCE_ALT_MAX": 100.0,
             }
         base.update(self._param_overrides)
         return base
 
     def _send_param(self, pid: str, value: float, index: int) -> None:
-        params = self._params()
-        self._send(
-            self._mav.param_value_encode(
-                pid.encode()[:16], value, mavlink2.MAV_PARAM_TYPE_REAL32, len(params), index
-            )
-        )
+        is_int = pid in _INT_PARAMS
+        raw, ptype = encode_param(self.flavour, value, is_int)
+        if is_int and self.flavour == M.ARDUPILOT:
+            ptype = mavlink2.MAV_PARAM_TYPE_INT8  # ArduPilot says the parameter's own type
+        self._send(self._mav.param_value_encode(pid.encode()[:16], raw, ptype,
+                                                len(self._params()), index))
 
     def _param_read(self, pid: str, index: int) -> None:
         params = self._params()
         names = list(params)
-        if index >= 0 and index < len(names):
+        if 0 <= index < len(names):
             pid = names[index]
         if pid in params:
             self._send_param(pid, params[pid], names.index(pid))
+
+    def _on_param_request_list(self, msg: Any) -> None:
+        for i, (pid, val) in enumerate(self._params().items()):
+            self._send_param(pid, val, i)
+
+    def _on_param_request_read(self, msg: Any) -> None:
+        self._param_read(msg.param_id, msg.param_index)
+
+    def _on_param_set(self, msg: Any) -> None:
+        pid = msg.param_id
+        if pid in self._params():
+            self._param_overrides[pid] = decode_param(self.flavour, float(msg.param_value),
+                                                      int(msg.param_type))
+            self._event(f"param {pid} = {self._param_overrides[pid]:g}")
+        self._param_read(pid, -1)
 
     def _setpoint(self, msg: Any) -> None:
         used = False
@@ -342,3 +334,20 @@ class HandlersMixin(EmulatorFields):
         self._took_off = True
         self._event(f"takeoff to {alt_m:.1f} m")
         return M.MAV_RESULT_ACCEPTED
+
+
+#: parameters that are integers (PX4 sends their bytes in the float field).
+_INT_PARAMS = {"COM_OBL_RC_ACT", "NAV_DLL_ACT", "GF_ACTION", "FS_GCS_ENABLE", "FENCE_ENABLE",
+               "FENCE_TYPE", "FENCE_ACTION"}
+
+_HANDLERS = {
+    "HEARTBEAT": HandlersMixin._on_heartbeat,
+    "COMMAND_LONG": HandlersMixin._on_command,
+    "COMMAND_INT": HandlersMixin._on_command,
+    "SET_POSITION_TARGET_LOCAL_NED": HandlersMixin._setpoint,
+    "SET_GPS_GLOBAL_ORIGIN": HandlersMixin._on_set_origin,
+    "REQUEST_DATA_STREAM": HandlersMixin._on_request_data_stream,
+    "PARAM_REQUEST_LIST": HandlersMixin._on_param_request_list,
+    "PARAM_REQUEST_READ": HandlersMixin._on_param_request_read,
+    "PARAM_SET": HandlersMixin._on_param_set,
+}

@@ -168,4 +168,22 @@ class LinkMixin(EmulatorFields):
                     self._drop_peer(addr)
 
     def _statustext(self, severity: int, text: str) -> None:
-        self._send(self._mav.statustext_encode(severity, text.encode()[:50]))
+        """Send a STATUSTEXT (PX4: only to a link that has a listener, see
+        :attr:`EmulatorConfig.statustext_gate`); every text is kept in :attr:`texts`."""
+        sent = self._text_listener()
+        self.texts.append((self.t_s, severity, text, sent))
+        if sent:
+            self._send(self._mav.statustext_encode(severity, text.encode()[:50]))
+
+    def _text_listener(self) -> bool:
+        """Whether PX4 would send STATUSTEXT now: a GCS heartbeat (any system), or an
+        onboard controller's from the vehicle's own system, within 2.5 s (real time)."""
+        if self.flavour != "px4" or not self.cfg.statustext_gate:
+            return True
+        window = 2.5 * self.cfg.time_scale
+        for (sysid, _, mav_type), t in self.peer_heartbeat_ids.items():
+            if self.t_s - t <= window and (
+                mav_type == 6 or (mav_type == 18 and sysid == self.cfg.system_id)
+            ):
+                return True
+        return False

@@ -28,6 +28,7 @@ class MessagesMixin(EmulatorFields):
                 "HOME_POSITION": 2.0,
                 "ATTITUDE": pos,
                 "GPS_RAW_INT": 1.0,
+                "BATTERY_STATUS": 2.0,
             }
         else:
             # ArduCopter: every SRn_* default stream rate is 0.
@@ -43,7 +44,8 @@ class MessagesMixin(EmulatorFields):
         if not self.booted:
             status = M.MAV_STATE_BOOT
         elif self.armed:
-            status = M.MAV_STATE_ACTIVE
+            # PX4 HEARTBEAT.hpp: armed and a failsafe active -> CRITICAL (ArduCopter alike).
+            status = M.MAV_STATE_CRITICAL if self.failsafe else M.MAV_STATE_ACTIVE
         elif self.flavour == M.PX4 and self.cfg.preflight_fail:
             # PX4's HEARTBEAT.hpp: STANDBY only while pre_flight_checks_pass, else UNINIT.
             status = M.MAV_STATE_UNINIT
@@ -102,8 +104,16 @@ class MessagesMixin(EmulatorFields):
 
     def _msg_sys_status(self) -> Any:
         sensors = 0x3F | (0x20 if self._position_valid() else 0)
+        volts_mv = int(round((13.2 + 3.6 * self.battery / 100.0) * 1000))
         return self._mav.sys_status_encode(
-            sensors, sensors, sensors, 100, 16000, 500, 90, 0, 0, 0, 0, 0, 0
+            sensors, sensors, sensors, 100, volts_mv, 500, int(round(self.battery)),
+            0, 0, 0, 0, 0, 0
+        )
+
+    def _msg_battery_status(self) -> Any:
+        cell_mv = int(round((13.2 + 3.6 * self.battery / 100.0) * 1000 / 4))
+        return self._mav.battery_status_encode(
+            0, 0, 0, 32767, [cell_mv] * 4 + [65535] * 6, 500, -1, -1, int(round(self.battery)),
         )
 
     def _msg_extended_sys_state(self) -> Any:

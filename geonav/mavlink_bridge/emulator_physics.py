@@ -51,6 +51,7 @@ class PhysicsMixin(EmulatorFields):
             self._took_off = False
             self._touchdown_at = None
             self.target = None
+            self.failsafe = ""
             self._event(f"disarmed ({why})")
 
     def _step(self, dt: float) -> None:
@@ -73,6 +74,7 @@ class PhysicsMixin(EmulatorFields):
             if self.t_s - self._armed_at > cfg.disarm_delay_s:
                 self._statustext(4, "Disarmed: no takeoff")
                 self._disarm("auto-disarm, no take-off")
+        self._safety_step(dt)
         self._control(dt)
         self.track.append((self.t_s, float(self.pos[0]), float(self.pos[1]), float(self.pos[2])))
         if len(self.track) > 200_000:

@@ -29,13 +29,13 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from geonav.errors import CheckpointError, ConfigError, FlightError, SafetyViolation
+from geonav.errors import CheckpointError, ConfigError, FlightError
 from geonav.geo import ScenePoint
 from geonav.mavlink_bridge.autonomy import Verdict, step_loop, take_off_and_position
 from geonav.mavlink_bridge.backends import open_vehicle
 from geonav.mavlink_bridge.camera_source import FrameSource
 from geonav.mavlink_bridge.context import FlightContext, Progress
-from geonav.mavlink_bridge.ending import end_action, record_result
+from geonav.mavlink_bridge.ending import clear_autopilot_fence, end_action, record_result
 from geonav.mavlink_bridge.outcome import OUTCOME_WORDS, OUTCOMES, FlightResult, classify
 from geonav.mavlink_bridge.plan import (
     Cell,
@@ -47,7 +47,7 @@ from geonav.mavlink_bridge.plan import (
     validate_meta,
 )
 from geonav.mavlink_bridge.preflight import preflight
-from geonav.mavlink_bridge.safety import LinkLost, PreflightRefused
+from geonav.mavlink_bridge.safety import OperatorTakeover, attribute_mode_change
 from geonav.mavlink_bridge.signals import FlightInterrupted, StopSignals, stop_signals
 from geonav.mavlink_bridge.vehicle import Vehicle
 
@@ -169,8 +169,11 @@ def _fly_phases(ctx: FlightContext, sigs: StopSignals) -> FlightResult:
         log.error("%s", verdict.reason)
         ctx.rec.event(verdict.reason)
     except FlightError as err:
+        if isinstance(err, OperatorTakeover):
+            err = attribute_mode_change(ctx.vehicle, err)
         verdict = Verdict(classify(err, ctx.phase), describe(err))
-        log.error("flight ended (%s): %s", verdict.outcome, verdict.reason)
+        # The result line says it; the log line is for -v.
+        log.info("flight ended (%s): %s", verdict.outcome, verdict.reason)
         ctx.rec.event(f"{verdict.outcome}: {verdict.reason}")
     except Exception as err:  # any bug still ends in LAND/RTL below
         verdict = Verdict("safety_stop", f"unexpected error: {type(err).__name__}: {err}")
@@ -178,17 +181,17 @@ def _fly_phases(ctx: FlightContext, sigs: StopSignals) -> FlightResult:
         ctx.rec.event(verdict.reason)
     finally:
         sigs.may_raise = False  # the landing itself is never interrupted by a signal
-        end = end_action(ctx, verdict.outcome == "takeover")
+        end = end_action(ctx, verdict)
+        clear_autopilot_fence(ctx)
         if ctx.frames is not None:
             ctx.frames.close()
     return record_result(ctx, verdict, end, sigs)
 
 
 def describe(err: FlightError) -> str:
-    """The reason words of a flight error."""
-    if isinstance(err, SafetyViolation | LinkLost | PreflightRefused):
-        return str(err)
-    return f"{type(err).__name__}: {err}"
+    """The reason words of a flight error: its message (no class name; the messages of
+    a refused command or a timeout say what was refused or awaited)."""
+    return str(err)
 
 
 def fly(

@@ -11,8 +11,12 @@ coroutines to it and wait with a timeout. Plugins used:
 * ``ActionAsync``: arm, disarm, land, return to launch, set_gps_global_origin.
 * ``MavlinkDirectAsync``: the HEARTBEAT itself (``system_status`` and the raw
   ``custom_mode``, which MAVSDK's telemetry does not expose; we must gate on
-  STANDBY), DO_SET_MODE and NAV_TAKEOFF with their COMMAND_ACK, and the
-  SET_POSITION_TARGET_LOCAL_NED setpoints.
+  STANDBY), DO_SET_MODE and NAV_TAKEOFF with their COMMAND_ACK, the
+  SET_POSITION_TARGET_LOCAL_NED setpoints, SYS_STATUS, BATTERY_STATUS and
+  GPS_RAW_INT as they are (battery and fix read exactly as the pymavlink backend
+  reads them), and the parameter protocol (PARAM_SET / PARAM_REQUEST_READ,
+  PARAM_VALUE) that :class:`~geonav.mavlink_bridge.backend_common.LinkState` runs.
+* ``GeofenceAsync``: upload and clear the autopilot fence's items.
 
 Setpoints go out one per call through ``MavlinkDirect`` rather than
 ``OffboardAsync.set_position_ned`` by default: the Offboard plugin resends
@@ -47,7 +51,8 @@ from geonav.errors import CommandRejected, FlightError, FlightTimeout
 from geonav.geo import LocalNED, LonLat
 from geonav.mavlink_bridge import modes as M
 from geonav.mavlink_bridge.backend_common import Heartbeat, LinkState
-from geonav.mavlink_bridge.vehicle import Connection
+from geonav.mavlink_bridge.folding import RepeatFolder
+from geonav.mavlink_bridge.vehicle import Connection, FenceSpec
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -90,9 +95,7 @@ class MavsdkLogForwarder:
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.logger, self.window_s, self.clock = logger, window_s, clock
-        self._lock = threading.Lock()
-        # message -> [time it was last logged at its own level, repeats since then]
-        self._seen: dict[str, list[float]] = {}
+        self._folder = RepeatFolder(window_s, clock)
         self.problems: collections.deque[tuple[float, str]] = collections.deque(maxlen=64)
         """(clock time, message) of MAVSDK's recent warnings and errors, oldest first."""
 
@@ -100,29 +103,14 @@ class MavsdkLogForwarder:
         """MAVSDK's callback (called on MAVSDK's threads); True: MAVSDK prints nothing."""
         try:
             py_level = self.LEVELS.get(int(level), logging.DEBUG)
-            now = self.clock()
             if int(level) >= 2:
-                self.problems.append((now, message))
-            with self._lock:
-                seen = self._seen.get(message)
-                if seen is not None and now - seen[0] < self.window_s:
-                    seen[1] += 1
-                    folded = -1
-                else:
-                    folded = int(seen[1]) if seen is not None else 0
-                    self._seen[message] = [now, 0]
-                    if len(self._seen) > 256:  # bounded: drop the oldest entries
-                        for key in sorted(self._seen, key=lambda k: self._seen[k][0])[:128]:
-                            del self._seen[key]
+                self.problems.append((self.clock(), message))
+            folded = self._folder.admit(message)
             where = f" ({file}:{line})" if file else ""
-            if folded < 0:
+            if folded is None:
                 self.logger.debug("%s (repeat)%s", message, where)
-            elif folded:
-                self.logger.log(
-                    py_level, "%s (and %d more in %.0f s)", message, folded, self.window_s
-                )
             else:
-                self.logger.log(py_level, "%s", message)
+                self.logger.log(py_level, "%s", self._folder.with_count(message, folded))
         except Exception:  # noqa: BLE001 - never raise into MAVSDK's C++ thread
             return False
         return True
@@ -159,6 +147,9 @@ def mavsdk_said(since: float, within_s: float = 30.0) -> str:
             said.append(message)
     return f"; MAVSDK: {'; '.join(said[:2])}" if said else ""
 
+
+#: the messages read as they are (MavlinkDirect), for battery, GPS fix and parameters.
+RAW_FIELDS = ("SYS_STATUS", "BATTERY_STATUS", "GPS_RAW_INT", "PARAM_VALUE")
 
 EXECUTOR_DRAIN_S = 10.0
 """On close, how long MAVSDK's blocking calls still running get to return (its commands
@@ -213,6 +204,7 @@ class MavsdkVehicle(LinkState):
         try:
             from mavsdk.asyncio import ComponentType, Configuration, Mavsdk
             from mavsdk.asyncio.plugins.action import ActionAsync
+            from mavsdk.asyncio.plugins.geofence import GeofenceAsync
             from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync
             from mavsdk.asyncio.plugins.offboard import OffboardAsync
             from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
@@ -252,6 +244,7 @@ class MavsdkVehicle(LinkState):
             self._telemetry = TelemetryAsync(system)
             self._direct = MavlinkDirectAsync(system)
             self._offboard = OffboardAsync(system)
+            self._geofence = GeofenceAsync(system)
             kind = await system.autopilot_type()
             self.autopilot = {1: M.PX4, 2: M.ARDUPILOT}.get(int(kind), "")
             loop = asyncio.get_running_loop()
@@ -261,6 +254,7 @@ class MavsdkVehicle(LinkState):
                 self._watch_texts,
                 self._watch_home,
                 self._watch_landed,
+                *(self._raw_watcher(name) for name in RAW_FIELDS),
             ):
                 self._tasks.append(loop.create_task(self._keep(watch)))
 
@@ -302,6 +296,18 @@ class MavsdkVehicle(LinkState):
             self._hb_autopilot = int(fields["autopilot"])
             self._on_heartbeat(Heartbeat(int(fields["system_status"]), int(fields["custom_mode"]),
                                          int(fields["base_mode"])))
+
+    def _raw_watcher(self, name: str) -> Callable[[], Awaitable[None]]:
+        """A watcher that passes every ``name`` message of the autopilot's system to
+        :meth:`LinkState._on_fields` as its fields."""
+
+        async def watch() -> None:
+            async for msg in self._direct.subscribe_message(name):
+                if msg.system_id == self._sysid:
+                    self._on_fields(name, json.loads(msg.fields_json))
+
+        watch.__name__ = f"_watch_{name.lower()}"
+        return watch
 
     async def _watch_position(self) -> None:
         async for pv in self._telemetry.subscribe_position_velocity_ned():
@@ -415,6 +421,8 @@ class MavsdkVehicle(LinkState):
                     log.warning("MAVSDK %s: %s", name, err)
 
         self._run(rates(), timeout_s * 4, "telemetry rates")
+        self._request_intervals({"SYS_STATUS": 1e6, "BATTERY_STATUS": 1e6, "GPS_RAW_INT": 1e6},
+                                timeout_s)
         self.request_message("GPS_GLOBAL_ORIGIN", timeout_s)
 
     def request_message(self, name: str, timeout_s: float) -> bool:
@@ -498,6 +506,50 @@ class MavsdkVehicle(LinkState):
             json.dumps(fields),
         )
         self._run(self._direct.send_message(msg), 1.0, "setpoint")
+
+    # ------------------------------------------------- parameters, fence
+    def _send_raw(self, name: str, fields: dict[str, Any]) -> None:
+        """One message by name through MavlinkDirect (targets filled in)."""
+        from mavsdk.plugins.mavlink_direct import MavlinkMessage
+
+        body = {"target_system": self._sysid, "target_component": M.MAV_COMP_ID_AUTOPILOT1,
+                **fields}
+        msg = MavlinkMessage(name, 0, 0, self._sysid, M.MAV_COMP_ID_AUTOPILOT1,
+                             json.dumps(body))
+        self._run(self._direct.send_message(msg), 2.0, name)
+
+    def _send_fence_items(self, fence: FenceSpec, timeout_s: float) -> None:
+        """``Geofence.upload_geofence``: one inclusion polygon, an inclusion circle."""
+        from mavsdk.plugins.geofence import (
+            Circle,
+            FenceType,
+            GeofenceData,
+            GeofenceError,
+            Point,
+            Polygon,
+        )
+
+        polygon = Polygon([Point(v.lat_deg, v.lon_deg) for v in fence.polygon],
+                          FenceType.INCLUSION)
+        circles = []
+        if fence.circle is not None:
+            centre, radius_m = fence.circle
+            circles.append(Circle(Point(centre.lat_deg, centre.lon_deg), float(radius_m),
+                                  FenceType.INCLUSION))
+        try:
+            self._run(self._geofence.upload_geofence(GeofenceData([polygon], circles)),
+                      timeout_s, "geofence upload")
+        except GeofenceError as err:
+            raise CommandRejected(f"fence upload: MAVSDK geofence failed ({err})") from err
+
+    def _clear_fence_items(self, timeout_s: float) -> None:
+        """``Geofence.clear_geofence``."""
+        from mavsdk.plugins.geofence import GeofenceError
+
+        try:
+            self._run(self._geofence.clear_geofence(), timeout_s, "geofence clear")
+        except GeofenceError as err:
+            raise CommandRejected(f"fence clear: MAVSDK geofence failed ({err})") from err
 
     def stop_setpoints(self) -> None:
         """Stop the Offboard plugin's own 20 Hz resend (only with ``use_offboard_plugin``)."""

@@ -14,7 +14,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from geonav.errors import CommandRejected, FlightError, FlightTimeout, SafetyViolation
-from geonav.mavlink_bridge.safety import LinkLost, OperatorTakeover, PreflightRefused
+from geonav.mavlink_bridge.safety import (
+    AutopilotFailsafe,
+    BatteryLow,
+    LinkLost,
+    OperatorTakeover,
+    PositionLost,
+    PreflightRefused,
+)
 
 Cell = tuple[int, int]
 
@@ -26,6 +33,8 @@ OUTCOMES: dict[str, int] = {
     "link_lost": 4,
     "takeover": 5,
     "safety_stop": 6,
+    "failsafe": 7,
+    "position_lost": 8,
     "interrupted": 130,
 }
 OUTCOME_WORDS = {
@@ -35,8 +44,12 @@ OUTCOME_WORDS = {
     "link_lost": "link lost",
     "takeover": "operator took over",
     "safety_stop": "safety stop",
+    "failsafe": "autopilot failsafe",
+    "position_lost": "position lost",
     "interrupted": "interrupted",
 }
+#: outcomes after which someone else has control: geonav commands no end action.
+HANDED_OVER = ("takeover", "failsafe", "position_lost")
 
 
 @dataclass
@@ -46,7 +59,7 @@ class FlightResult:
     Attributes:
         success: the vehicle arrived at the target cell.
         reason: why the flight ended (target reached, step budget, the safety rule, the error).
-        steps: policy steps flown.
+        steps: policy steps taken (a move refused as in the env counts, as there).
         final_cell: last cell reached (None if autonomy never started).
         target_cell: the target.
         end_action: ``land``, ``rtl``, or ``none`` (operator takeover / never armed).
@@ -61,6 +74,9 @@ class FlightResult:
             LAND/RTL failed or was never needed).
         signal_name: the signal that interrupted the flight (``SIGTERM``...), if any.
         notes: warnings the operator must see (altitude clamp, obstacle refusals).
+        flown_steps: steps that moved the vehicle to a new cell (None: same as ``steps``).
+        fence_kept: geonav's fence is still on the autopilot (it was flying, someone
+            else's, at the end, or the link was gone).
     """
 
     success: bool
@@ -77,6 +93,8 @@ class FlightResult:
     end_ok: bool = False
     signal_name: str | None = None
     notes: list[str] = field(default_factory=list)
+    flown_steps: int | None = None
+    fence_kept: bool = False
     _draw: Callable[[], Path | None] | None = field(default=None, repr=False, compare=False)
 
     def draw_track(self) -> Path | None:
@@ -93,16 +111,14 @@ class FlightResult:
 
     def summary(self) -> str:
         """One line for the console."""
+        who = "the operator" if self.outcome == "takeover" else "the autopilot"
         if self.end_action == "none":
-            end = (
-                "no end action ("
-                + ("the operator has control" if self.outcome == "takeover" else "nothing flown")
-                + ")"
-            )
+            has = self.outcome in HANDED_OVER
+            end = f"no end action ({who + ' has control' if has else 'nothing flown'})"
         elif self.end_ok:
             end = f"end {self.end_action} confirmed, disarmed"
-        elif self.outcome == "takeover":  # the operator changed the mode during the landing
-            end = f"end {self.end_action} stopped by the operator (the operator has control)"
+        elif self.outcome in HANDED_OVER:  # the mode changed during the landing
+            end = f"end {self.end_action} stopped by {who} ({who} has control)"
         else:
             end = f"end {self.end_action} NOT confirmed (disarmed {self.disarmed})"
             if "failsafe must act" not in self.reason:  # said once
@@ -112,8 +128,13 @@ class FlightResult:
         # operator takeover: mode changed ..." (PX4 SIH and ArduCopter SITL).
         reason = strip_outcome(self.outcome, self.reason)
         head = reason if reason.lower().startswith(words) else f"{words}: {reason}"
+        if self.fence_kept:
+            end += "; geonav's fence stays on the autopilot"
         track = "" if self._draw is not None else f"; track {self.png_path}"
-        return f"{head}; {self.steps} steps; {end}; record {self.record_path}{track}"
+        steps = f"{self.steps} steps"
+        if self.flown_steps is not None and self.flown_steps != self.steps:
+            steps += f" ({self.flown_steps} flown)"
+        return f"{head}; {steps}; {end}; record {self.record_path}{track}"
 
 
 def exit_code_of(outcome: str, signal_name: str | None) -> int:
@@ -127,6 +148,8 @@ def exit_code_of(outcome: str, signal_name: str | None) -> int:
 _OUTCOME_PREFIXES = {
     "link_lost": ("link lost: ",),
     "takeover": ("operator took over: ", "operator takeover: "),
+    "failsafe": ("autopilot failsafe: ",),
+    "position_lost": ("position lost: ",),
     "interrupted": ("interrupted: ",),
 }
 
@@ -143,9 +166,15 @@ def classify(err: FlightError, phase: str) -> str:
     """Outcome word of a flight error raised in ``phase``."""
     if isinstance(err, LinkLost):
         return "link_lost"
+    if isinstance(err, PositionLost):
+        return "position_lost"
+    if isinstance(err, AutopilotFailsafe):
+        return "failsafe"
     if isinstance(err, OperatorTakeover):
         return "takeover"
     if isinstance(err, PreflightRefused):
+        return "refused"
+    if isinstance(err, BatteryLow) and phase in ("preflight", "arming"):
         return "refused"
     if phase in ("preflight", "arming") and isinstance(err, (CommandRejected, FlightTimeout)):
         return "refused"

@@ -110,6 +110,13 @@ class FlightConfig:
             or ``"end"`` (end the flight with a safety stop).
         takeover_airborne: accept a vehicle that is already armed and flying; its
             current position and altitude are the start (otherwise geonav refuses).
+        min_battery_pct: geonav refuses to arm below this battery charge, percent, and
+            ends the flight with the end action when it falls below it in the air (above
+            the autopilots' own critical levels: PX4 ``BAT_CRIT_THR`` 7 %, low 15 %);
+            0 turns the check off.
+        autopilot_fence: upload the scene's fence to the autopilot (fence items and its
+            breach action = ``end``) before arming, and clear it after the landing;
+            geonav's own fence stays the second layer.
         timeouts: per-phase timeouts.
     """
 
@@ -138,6 +145,8 @@ class FlightConfig:
     obstacles: Any = None
     on_obstacle: str = "stay"
     takeover_airborne: bool = False
+    min_battery_pct: float = 25.0
+    autopilot_fence: bool = True
     timeouts: Timeouts = field(default_factory=Timeouts)
 
     def __post_init__(self) -> None:
@@ -147,6 +156,8 @@ class FlightConfig:
             raise ConfigError(f"on_obstacle {self.on_obstacle!r}: use 'stay' or 'end'")
         if self.fence_margin_m is not None and not self.fence_margin_m >= 0:
             raise ConfigError(f"fence margin {self.fence_margin_m!r} m must be >= 0")
+        if not 0 <= self.min_battery_pct < 100:
+            raise ConfigError(f"--min-battery {self.min_battery_pct!r} %: give 0..99 (0: off)")
 
 
 @dataclass

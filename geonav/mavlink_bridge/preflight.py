@@ -2,18 +2,24 @@
 
 :func:`preflight` connects, waits for the autopilot to be ready, refuses a vehicle
 someone else is flying (unless ``takeover_airborne``), requests telemetry, waits for
-the EKF origin and a position, then places the flight: the frame conversion, the
-fence (the vehicle, the start and the target inside it), the start cell, the target
-view and a policy check, the camera, and the safety machinery (watchdog, setpoint
-pump). Every refusal is a :class:`~geonav.mavlink_bridge.safety.PreflightRefused`
-raised before a single command that moves the vehicle.
+the EKF origin and a position, refuses a battery below ``--min-battery``, then places
+the flight: the frame conversion, the fence (the vehicle, the start and the target
+inside it), the start cell, the target view and a policy check, the camera, the safety
+machinery (watchdog, setpoint pump), and last the autopilot's own copy of the fence
+(items over the mission protocol, its breach action by parameter). Every refusal is a
+:class:`~geonav.mavlink_bridge.safety.PreflightRefused` raised before a single command
+that moves the vehicle.
 """
 
 from __future__ import annotations
 
+import logging
+import math
+import time
 from dataclasses import replace
 
-from geonav.errors import CheckpointError, ConfigError
+from geonav.errors import CheckpointError, ConfigError, FlightError
+from geonav.geo import ScenePoint
 from geonav.mavlink_bridge import modes as M
 from geonav.mavlink_bridge.camera_source import OpenCVFrames, SyntheticFrames, parse_camera
 from geonav.mavlink_bridge.context import FlightContext
@@ -22,7 +28,9 @@ from geonav.mavlink_bridge.plan import plan_flight
 from geonav.mavlink_bridge.pump import SetpointPump
 from geonav.mavlink_bridge.safety import Geofence, PreflightRefused, Watchdog
 from geonav.mavlink_bridge.sequence import wait_position, wait_ready
-from geonav.mavlink_bridge.vehicle import VehicleState
+from geonav.mavlink_bridge.vehicle import FenceSpec, VehicleState
+
+log = logging.getLogger(__name__)
 
 MIN_TAKEOVER_ALT_M = 1.0
 """--takeover-airborne refuses a vehicle lower than this above home (armed on the ground)."""
@@ -42,10 +50,42 @@ def preflight(ctx: FlightContext) -> None:
         FlightTimeout: the autopilot never got ready or never had a position.
     """
     s = connect(ctx)
+    check_battery(ctx)
     home_down = home_down_m(ctx, s)
     place(ctx, s, home_down)
     prepare_views(ctx)
     make_safety(ctx)
+    upload_autopilot_fence(ctx)
+
+
+#: how long preflight waits for a first battery reading.
+BATTERY_WAIT_S = 3.0
+
+
+def check_battery(ctx: FlightContext) -> None:
+    """Refuse a battery below ``--min-battery`` (a vehicle that says nothing of its
+    battery is flown, with a warning that the floor is not enforced)."""
+    floor = ctx.cfg.min_battery_pct
+    if floor <= 0:
+        return
+    deadline = time.monotonic() + BATTERY_WAIT_S
+    s = ctx.vehicle.state()
+    while s.battery_pct is None:
+        if time.monotonic() > deadline:
+            note = ("no battery reading from the autopilot (SYS_STATUS, BATTERY_STATUS): "
+                    "--min-battery is not enforced")
+            log.warning("%s", note)
+            ctx.notes.append(note)
+            ctx.rec.event(note)
+            return
+        time.sleep(0.1)
+        s = ctx.vehicle.state()
+    ctx.rec.battery(s.battery_pct, s.battery_v)
+    if s.battery_pct < floor:
+        raise PreflightRefused(
+            f"battery at {s.battery_pct:.0f}% is below --min-battery {floor:g}%: charge or "
+            "change it (or lower --min-battery)"
+        )
 
 
 def connect(ctx: FlightContext) -> VehicleState:
@@ -179,10 +219,13 @@ def prepare_views(ctx: FlightContext) -> None:
 
 
 def make_safety(ctx: FlightContext) -> None:
-    """The link/mode watchdog and the setpoint pump that refuses targets off the fence."""
+    """The link/mode/position watchdog and the setpoint pump that refuses targets off
+    the fence. The GPS fix is watched when the vehicle has a 3D fix now."""
     cfg = ctx.cfg
     ctx.watchdog = Watchdog(cfg.heartbeat_timeout_s, cfg.position_timeout_s,
                             M.AUTONOMY_MODE[ctx.vehicle.autopilot])
+    fix = ctx.vehicle.state().gps_fix_type
+    ctx.watchdog.gps_required = fix is not None and fix >= 3
     ctx.pump = SetpointPump(
         ctx.vehicle,
         rate_hz=cfg.pump_rate_hz,
@@ -191,3 +234,47 @@ def make_safety(ctx: FlightContext) -> None:
         watchdog=ctx.watchdog,
         land_timeout_s=ctx.t.command_s,
     )
+
+
+#: the autopilot's ceiling is this far above geonav's ``--max-alt``.
+FENCE_CEILING_MARGIN_M = 5.0
+
+
+def autopilot_fence(ctx: FlightContext) -> FenceSpec:
+    """The autopilot's fence: the scene's edge (geonav's setpoints stay one fence margin
+    inside it, so no step's overshoot reaches it), a circle of ``--max-distance`` plus the
+    margin around home, the ceiling, and the end action as its breach action."""
+    assert ctx.here_scene is not None
+    scene, cfg = ctx.scene, ctx.cfg
+    xmin, ymin, xmax, ymax = scene.bounds_m
+    corners = [(xmin, ymin), (xmax, ymin), (xmax, ymax), (xmin, ymax)]
+    polygon = tuple(scene.frame.to_lonlat(ScenePoint(x, y), 0.0) for x, y in corners)
+    circle = None
+    if math.isfinite(cfg.max_distance_m):
+        circle = (scene.frame.to_lonlat(ctx.here_scene, 0.0),
+                  cfg.max_distance_m + ctx.plan.margin_m)
+    return FenceSpec(polygon, circle, cfg.max_alt_m + FENCE_CEILING_MARGIN_M, cfg.end)
+
+
+def upload_autopilot_fence(ctx: FlightContext) -> None:
+    """Give the autopilot the fence (before arming; :func:`ending.clear_autopilot_fence`
+    takes it back after the landing).
+
+    Raises:
+        PreflightRefused: the autopilot would not take it.
+    """
+    if not ctx.cfg.autopilot_fence:
+        ctx.rec.event("the autopilot gets no fence (--no-autopilot-fence): geonav's only")
+        return
+    fence = autopilot_fence(ctx)
+    ctx.fence_uploaded = True  # cleared at the end even if only part of it went through
+    try:
+        ctx.vehicle.upload_fence(fence, 3.0 * ctx.t.command_s)
+    except FlightError as err:
+        raise PreflightRefused(
+            f"the autopilot did not take geonav's fence ({err}); fly with "
+            "--no-autopilot-fence to rely on geonav's own fence alone"
+        ) from err
+    ctx.rec.event(f"autopilot fence: {len(fence.polygon)}-vertex polygon"
+                  + (f", {fence.circle[1]:.0f} m circle" if fence.circle else "")
+                  + f", ceiling {fence.max_alt_m:g} m, breach action {fence.action}")

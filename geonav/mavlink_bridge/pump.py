@@ -129,7 +129,7 @@ class SetpointPump:
         if self.fault_error is None:
             self.fault_error = err
             self.fault = str(err)
-            log.error("setpoint pump stopped: %s", err)
+            log.info("setpoint pump stopped: %s", err)
         self._stop.set()
         self._stop_backend()
 

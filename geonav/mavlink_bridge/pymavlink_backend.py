@@ -13,16 +13,26 @@ the link about once a second. ``connect()`` retries opening a TCP or serial
 link until its timeout (a companion computer often boots before the
 autopilot's port listens), as MAVSDK does.
 
+Identity: geonav sends its 1 Hz HEARTBEAT as an onboard controller from system 255
+(the GCS id ArduPilot's ``MAV_GCS_SYSID`` expects) and, on PX4, a second one from the
+autopilot's own system id: PX4's STATUSTEXT stream sends only to a link that has seen a
+GCS heartbeat, or (PX4 main) an onboard-controller heartbeat from its own system
+(``mavlink_receiver.cpp`` ``handle_message_heartbeat``, ``streams/STATUSTEXT.hpp``), so
+a heartbeat from system 255 alone got no autopilot text on PX4's onboard link.
+
 Commands go out as COMMAND_LONG and wait for the matching COMMAND_ACK: same
 command id, addressed to us, and received after this request was first
 sent (an older request's late ACK is never taken); resent with an
 incremented ``confirmation`` when none arrives; IN_PROGRESS extends the wait.
 LAND and RTL are MAV_CMD_NAV_LAND / NAV_RETURN_TO_LAUNCH, so their ACKs cannot
-be confused with a DO_SET_MODE's.
+be confused with a DO_SET_MODE's. Parameters and the autopilot fence use the
+plain parameter and mission protocols (:mod:`~geonav.mavlink_bridge.backend_common`,
+:mod:`~geonav.mavlink_bridge.pymavlink_mission`).
 """
 
 from __future__ import annotations
 
+import collections
 import logging
 import math
 import threading
@@ -32,9 +42,10 @@ from typing import Any
 from geonav.errors import FlightError, FlightTimeout
 from geonav.geo import LocalNED, LonLat
 from geonav.mavlink_bridge import modes as M
-from geonav.mavlink_bridge._mav import mavutil
+from geonav.mavlink_bridge import pymavlink_mission
+from geonav.mavlink_bridge._mav import mavlink2, mavutil
 from geonav.mavlink_bridge.backend_common import Heartbeat, LinkState
-from geonav.mavlink_bridge.vehicle import Connection
+from geonav.mavlink_bridge.vehicle import Connection, FenceSpec
 
 log = logging.getLogger(__name__)
 
@@ -79,6 +90,8 @@ class PymavlinkVehicle(LinkState):
         self._threads: list[threading.Thread] = []
         self._target = (0, 0)
         self._acks: dict[int, tuple[float, Any]] = {}
+        self.mission_rx: collections.deque[tuple[float, str, Any]] = collections.deque(maxlen=64)
+        """(time, kind, message) of the mission protocol's replies (MISSION_REQUEST*, _ACK)."""
         self._t0 = time.monotonic()
         self._last_rx = -math.inf
         self._closed = False
@@ -182,20 +195,29 @@ class PymavlinkVehicle(LinkState):
     def _heartbeat_loop(self) -> None:
         while not self._stop.is_set():
             try:
-                self._send(
-                    "heartbeat_send",
-                    M.MAV_TYPE_ONBOARD_CONTROLLER,
-                    M.MAV_AUTOPILOT_INVALID,
-                    0,
-                    0,
-                    0,
-                )
+                self._send_heartbeats()
             except FlightError:
                 return
             except Exception:  # noqa: BLE001 - the heartbeat thread never dies
                 log.exception("sending our HEARTBEAT failed")
             if self._stop.wait(1.0):
                 return
+
+    def _send_heartbeats(self) -> None:
+        """Our HEARTBEAT (onboard controller, system 255); on PX4 also one from the
+        autopilot's own system, which PX4's STATUSTEXT stream needs to see."""
+        args = (M.MAV_TYPE_ONBOARD_CONTROLLER, M.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+        self._send("heartbeat_send", *args)
+        if self.autopilot == M.PX4 and self._target[0] != self._src[0]:
+            as_vehicle = mavlink2.MAVLink(None, srcSystem=self._target[0],
+                                          srcComponent=self._src[1])
+            with self._send_lock:
+                if self._m is None:
+                    raise FlightError("MAVLink connection is closed")
+                try:
+                    self._m.write(self._m.mav.heartbeat_encode(*args).pack(as_vehicle))
+                except (OSError, AttributeError, ValueError) as err:
+                    log.debug("MAVLink send HEARTBEAT failed: %s", err)
 
     def _recv_loop(self) -> None:
         last_reopen = time.monotonic()
@@ -263,6 +285,8 @@ class PymavlinkVehicle(LinkState):
                 # from the heartbeat's source component.
                 self._target = src
                 self._m.target_system, self._m.target_component = src
+                if self.autopilot == M.PX4:
+                    threading.Thread(target=self._send_heartbeats, daemon=True).start()
             if src != self._target:
                 return
             self._on_heartbeat(Heartbeat(msg.system_status, msg.custom_mode, msg.base_mode))
@@ -289,6 +313,13 @@ class PymavlinkVehicle(LinkState):
         elif kind == "STATUSTEXT":
             text = msg.text if isinstance(msg.text, str) else msg.text.decode(errors="replace")
             self._on_statustext(int(msg.severity), text)
+        elif kind in ("SYS_STATUS", "BATTERY_STATUS", "GPS_RAW_INT", "PARAM_VALUE"):
+            self._on_fields(kind, msg.to_dict())
+        elif kind in ("MISSION_REQUEST", "MISSION_REQUEST_INT", "MISSION_ACK"):
+            if msg.target_system in (0, self._src[0]):
+                with self._lock:
+                    self.mission_rx.append((time.monotonic(), kind, msg))
+                    self._lock.notify_all()
 
     # ------------------------------------------------------------ commands
     def command(
@@ -331,19 +362,15 @@ class PymavlinkVehicle(LinkState):
     def request_telemetry(self, rate_hz: float, timeout_s: float) -> None:
         """SET_MESSAGE_INTERVAL for the streams the bridge reads; request origin and home once."""
         interval_us = 1e6 / rate_hz
-        streams = {
+        self._request_intervals({
             "LOCAL_POSITION_NED": interval_us,
             "GLOBAL_POSITION_INT": interval_us,
             "EXTENDED_SYS_STATE": 1e6,
             "SYS_STATUS": 1e6,
+            "BATTERY_STATUS": 1e6,
+            "GPS_RAW_INT": 1e6,
             "HOME_POSITION": 2e6,
-        }
-        for name, us in streams.items():
-            result = self.command(M.MAV_CMD_SET_MESSAGE_INTERVAL, (M.MSG_ID[name], us), timeout_s)
-            if result != M.MAV_RESULT_ACCEPTED:
-                log.warning(
-                    "SET_MESSAGE_INTERVAL %s answered %s", name, M.MAV_RESULT_NAMES.get(result)
-                )
+        }, timeout_s)
         self.request_message("GPS_GLOBAL_ORIGIN", timeout_s)
         self.request_message("HOME_POSITION", timeout_s)
 
@@ -403,3 +430,23 @@ class PymavlinkVehicle(LinkState):
 
     def stop_setpoints(self) -> None:
         """Nothing to stop: this backend sends only what the pump sends."""
+
+    # ------------------------------------------------- parameters, fence
+    def _send_raw(self, name: str, fields: dict[str, Any]) -> None:
+        """One message by name; ``target_system``/``target_component`` filled in."""
+        cls = getattr(mavlink2, f"MAVLink_{name.lower()}_message")
+        kw = {"target_system": self._target[0], "target_component": self._target[1], **fields}
+        args = [kw[f] if not isinstance(kw[f], str) else kw[f].encode() for f in cls.fieldnames]
+        with self._send_lock:
+            if self._m is None:
+                raise FlightError("MAVLink connection is closed")
+            try:
+                self._m.mav.send(cls(*args))
+            except (OSError, AttributeError, ValueError) as err:
+                log.debug("MAVLink send %s failed: %s", name, err)
+
+    def _send_fence_items(self, fence: FenceSpec, timeout_s: float) -> None:
+        pymavlink_mission.upload_fence_items(self, fence, timeout_s)
+
+    def _clear_fence_items(self, timeout_s: float) -> None:
+        pymavlink_mission.clear_fence_items(self, timeout_s)

@@ -3,7 +3,10 @@
 ``flight.jsonl`` holds one object per line, each with a ``kind``:
 ``header`` (settings, scene, origin, lattice), ``step`` (time, action,
 target in scene metres and NED, measured position, arrival time, frame
-latency, safety events), ``event`` and ``result``. ``track.png`` is zoomed
+latency, battery, safety events), ``event``, ``statustext`` (the autopilot's
+own messages, folded as on the console), ``battery`` (the battery series:
+percent and volts whenever they change) and ``result``. Rows may come from
+the link's threads (the autopilot's texts), so writing is locked. ``track.png`` is zoomed
 to the flight (the flown track, the start, the target and the step targets
 plus a margin of two cells) and shows the scene image, the lattice cells,
 the fence, the whole measured track (climb, steps, return and landing, each
@@ -15,6 +18,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -49,6 +53,8 @@ class FlightRecorder:
         self.track_phase: list[str] = []
         self.steps: list[dict[str, Any]] = []
         self.events: list[str] = []
+        self._lock = threading.Lock()
+        self._battery_row: tuple[float, float | None, float | None] | None = None
 
     def elapsed_s(self) -> float:
         """Seconds since the record started."""
@@ -57,10 +63,26 @@ class FlightRecorder:
     def write(self, kind: str, **data: Any) -> None:
         """Append one JSON line."""
         row = {"kind": kind, "t_s": round(self.elapsed_s(), 3), **data}
-        self._f.write(json.dumps(row, default=_jsonable) + "\n")
-        self._f.flush()
+        with self._lock:
+            if self._f.closed:
+                return
+            self._f.write(json.dumps(row, default=_jsonable) + "\n")
+            self._f.flush()
         if kind == "step":
             self.steps.append(row)
+
+    def battery(self, pct: float | None, volts: float | None) -> None:
+        """One point of the battery series: written when it changed (0.5 % or 0.05 V)
+        or 10 s after the last one."""
+        if pct is None and volts is None:
+            return
+        last = self._battery_row
+        now = self.elapsed_s()
+        if last is not None and now - last[0] < 10.0 and \
+                _near(last[1], pct, 0.5) and _near(last[2], volts, 0.05):
+            return
+        self._battery_row = (now, pct, volts)
+        self.write("battery", pct=pct, volts=None if volts is None else round(volts, 3))
 
     def event(self, text: str) -> None:
         """Record a safety or phase event."""
@@ -74,8 +96,9 @@ class FlightRecorder:
 
     def close(self) -> None:
         """Close the JSON lines file."""
-        if not self._f.closed:
-            self._f.close()
+        with self._lock:
+            if not self._f.closed:
+                self._f.close()
 
     def plot(
         self,
@@ -198,6 +221,10 @@ def _view_box(
     side = max(x1 - x0, y1 - y0)  # square, so cells stay square
     cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
     return (cx - side / 2, cy - side / 2, cx + side / 2, cy + side / 2)
+
+
+def _near(a: float | None, b: float | None, tol: float) -> bool:
+    return a is None and b is None or (a is not None and b is not None and abs(a - b) < tol)
 
 
 def read_record(path: str | Path) -> list[dict[str, Any]]:

@@ -1,4 +1,5 @@
-"""Safety rules that never depend on the policy: geofence, altitude clamp, watchdogs.
+"""Safety rules that never depend on the policy: geofence, altitude clamp, watchdogs,
+and telling an autopilot's failsafe from an operator's mode change.
 
 The geofence is a box from the scene bounds shrunk by a margin, optionally
 intersected with a maximum distance from home. A setpoint outside it is
@@ -9,23 +10,45 @@ while the vehicle is still inside the scene). The watchdogs watch the
 autopilot heartbeat, the position stream, the armed state and the mode:
 from the first mode geonav commands, any other mode (set by an RC pilot, a
 GCS or the autopilot's own failsafe) means someone else has control, and
-the bridge stops commanding without fighting.
+the bridge stops commanding without fighting. Who changed it is decided by
+:func:`attribute_mode_change`: the autopilot's failsafe when its HEARTBEAT shows
+CRITICAL (or worse) or it just said why in a STATUSTEXT (battery, fence, GPS/EKF,
+link...), an operator otherwise. A position stream that stops while the heartbeat
+goes on, or a GPS fix lost in the air, is a position loss: geonav stops commanding
+and leaves the vehicle to the autopilot's failsafe.
 """
 
 from __future__ import annotations
 
 import math
+import re
+import time
 from dataclasses import dataclass, field
 
 from geonav.errors import FlightError, SafetyViolation
 from geonav.geo import ScenePoint
-from geonav.mavlink_bridge.vehicle import VehicleState
+from geonav.mavlink_bridge import modes as M
+from geonav.mavlink_bridge.vehicle import Vehicle, VehicleState
 
 TAKEOVER = "operator takeover"
 
 
 class OperatorTakeover(SafetyViolation):
-    """Someone else changed the flight mode: geonav sends nothing more."""
+    """Someone else has control (an operator changed the flight mode): geonav sends
+    nothing more."""
+
+
+class AutopilotFailsafe(OperatorTakeover):
+    """The autopilot's own failsafe changed the mode: geonav sends nothing more."""
+
+
+class PositionLost(OperatorTakeover):
+    """The position estimate (or the GPS fix) is gone while the link lives: geonav stops
+    commanding and leaves the vehicle to the autopilot's failsafe."""
+
+
+class BatteryLow(SafetyViolation):
+    """The battery fell below ``--min-battery``: geonav ends the flight (LAND/RTL)."""
 
 
 class LinkLost(FlightError):
@@ -146,6 +169,9 @@ class Watchdog:
     engaged: bool = False
     expected: frozenset[str] = field(default_factory=frozenset)
     pending: frozenset[str] = field(default_factory=frozenset)
+    gps_required: bool = False
+    """Watch the GPS fix too (set when the vehicle had a 3D fix before take-off)."""
+    _no_fix_since: float | None = None
 
     def engage(self) -> None:
         """Start watching the armed state too (airborne in the autonomy mode)."""
@@ -174,13 +200,32 @@ class Watchdog:
                 f"(geonav flies in {'/'.join(sorted(self.expected))}; by an RC pilot, "
                 "a GCS or the autopilot's failsafe)"
             )
-        if s.position_age_s > self.position_timeout_s:
-            return SafetyViolation(
-                f"LOCAL_POSITION_NED stream lost for {s.position_age_s:.1f} s "
-                f"(limit {self.position_timeout_s:.1f} s)"
-            )
+        lost = self._position_lost(s)
+        if lost is not None:
+            return lost
         if self.engaged and check_armed and not s.armed:
             return SafetyViolation("vehicle disarmed during autonomous flight")
+        return None
+
+    def _position_lost(self, s: VehicleState) -> FlightError | None:
+        """A position stream that stopped while heartbeats still come (a dead link shows
+        both stale: that is the link watchdog's), or the GPS fix lost in the air."""
+        if s.position_age_s > self.position_timeout_s:
+            if s.heartbeat_age_s + 0.5 < s.position_age_s:
+                return PositionLost(
+                    f"position lost: no LOCAL_POSITION_NED for {s.position_age_s:.1f} s "
+                    "while the autopilot's heartbeat goes on (GPS or EKF)"
+                )
+            return None
+        fix = s.gps_fix_type
+        if self.gps_required and fix is not None and fix < 3:
+            if self._no_fix_since is None:
+                self._no_fix_since = time.monotonic()
+            elif time.monotonic() - self._no_fix_since > self.position_timeout_s:
+                return PositionLost(f"position lost: GPS fix type {fix} (no 3D fix) for "
+                                    f"{time.monotonic() - self._no_fix_since:.1f} s")
+        else:
+            self._no_fix_since = None
         return None
 
     def violation(self, s: VehicleState) -> str | None:
@@ -193,3 +238,52 @@ class Watchdog:
         err = self.error(s, check_armed=check_armed)
         if err is not None:
             raise err
+
+
+#: What an autopilot's failsafe says (PX4 commander/navigator, ArduCopter's failsafes):
+#: battery, fence, GPS/EKF, radio and link loss, offboard loss, termination.
+FAILSAFE_WORDS = re.compile(
+    r"fail.?safe|battery|fence|gps|ekf|position (estimate )?lost|no position|navigation"
+    r"|rc (lost|loss)|radio|data ?link|gcs (lost|failsafe)|offboard.*lost|terminat|crash",
+    re.IGNORECASE,
+)
+#: Pre-arm complaints are no failsafe (an operator may switch modes while they repeat).
+_NOT_FAILSAFE = re.compile(r"^(PreArm|Arm:|Preflight)", re.IGNORECASE)
+
+
+def failsafe_evidence(s: VehicleState, within_s: float = 5.0) -> str:
+    """Why ``s`` looks like the autopilot's own failsafe ('' when it does not): the
+    HEARTBEAT's CRITICAL/EMERGENCY (both autopilots show it while a failsafe is active)
+    and the failsafe's STATUSTEXT of the last ``within_s`` seconds."""
+    said = [text for age, _, text in reversed(s.recent_texts)
+            if age <= within_s and FAILSAFE_WORDS.search(text) and not _NOT_FAILSAFE.match(text)]
+    parts = []
+    if said:
+        parts.append(f"autopilot says {said[0]!r}")
+    if s.system_status in M.FAILSAFE_STATES:
+        name = {5: "CRITICAL", 6: "EMERGENCY", 8: "FLIGHT_TERMINATION"}[s.system_status]
+        parts.append(f"HEARTBEAT system status {name}")
+    return "; ".join(parts)
+
+
+def attribute_mode_change(vehicle: Vehicle, err: OperatorTakeover,
+                          grace_s: float = 1.5) -> OperatorTakeover:
+    """An :class:`AutopilotFailsafe` when the mode change was the autopilot's failsafe,
+    else ``err`` (an operator's). Its STATUSTEXT can come just after the HEARTBEAT that
+    shows the new mode, so the evidence is awaited ``grace_s`` seconds."""
+    if isinstance(err, (AutopilotFailsafe, PositionLost)):
+        return err
+    deadline = time.monotonic() + grace_s
+    while True:
+        try:
+            s = vehicle.state()
+        except FlightError:
+            return err
+        why = failsafe_evidence(s)
+        if why:
+            return AutopilotFailsafe(
+                f"autopilot failsafe: mode changed to {s.mode!r} by the autopilot ({why})"
+            )
+        if time.monotonic() > deadline:
+            return err
+        time.sleep(0.05)

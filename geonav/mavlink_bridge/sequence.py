@@ -272,7 +272,7 @@ def arm_with_retry(vehicle: Vehicle, t: Timeouts, alive: Callable[[], None] | No
             return
         except CommandRejected as err:
             last = str(err)
-            log.warning("arming attempt %d refused: %s", attempts, err)
+            log.info("arming attempt %d refused: %s", attempts, err)
         if time.monotonic() + t.arm_retry_s > deadline:
             raise CommandRejected(
                 f"vehicle refused to arm for {t.arm_s:.0f} s ({attempts} attempts); "
@@ -439,7 +439,7 @@ def end_flight(
                 vehicle.land(t.command_s)
         except (FlightTimeout, CommandRejected) as err:
             last = err
-            log.warning("%s not acknowledged (%s); retrying", end.upper(), err)
+            log.info("%s not acknowledged (%s); retrying", end.upper(), err)
             time.sleep(0.2)
             continue
         if confirm_mode(vehicle, wanted, previous, min(2.0, t.mode_s)):

@@ -38,6 +38,12 @@ class VehicleState:
         landed_state: MAV_LANDED_STATE (0 when unknown).
         last_statustext: the most recent STATUSTEXT, "" if none.
         statustext_age_s: seconds since that STATUSTEXT (inf if none): quote only fresh ones.
+        battery_pct: remaining battery, percent (SYS_STATUS / BATTERY_STATUS
+            ``battery_remaining``); None when the autopilot does not say.
+        battery_v: battery voltage, volts; None when unknown.
+        gps_fix_type: GPS_RAW_INT ``fix_type`` (0-1 no fix, 2 2D, 3 3D, ...); None when
+            no GPS_RAW_INT was seen.
+        recent_texts: the last STATUSTEXTs as (age s, MAV_SEVERITY, text), oldest first.
     """
 
     autopilot: str
@@ -53,6 +59,10 @@ class VehicleState:
     landed_state: int = 0
     last_statustext: str = ""
     statustext_age_s: float = float("inf")
+    battery_pct: float | None = None
+    battery_v: float | None = None
+    gps_fix_type: int | None = None
+    recent_texts: tuple[tuple[float, int, str], ...] = ()
 
     @property
     def speed_mps(self) -> float:
@@ -61,6 +71,23 @@ class VehicleState:
             return float("inf")
         vn, ve, vd = self.velocity_ned_mps
         return float((vn * vn + ve * ve + vd * vd) ** 0.5)
+
+
+@dataclass(frozen=True)
+class FenceSpec:
+    """A fence for the autopilot to enforce itself (MAVLink fence items and parameters).
+
+    Attributes:
+        polygon: inclusion polygon vertices, WGS 84, in order.
+        circle: (centre, radius m) of an inclusion circle, or None.
+        max_alt_m: ceiling above home, metres (None: none).
+        action: what the autopilot does on a breach: ``"land"`` or ``"rtl"``.
+    """
+
+    polygon: tuple[LonLat, ...]
+    circle: tuple[LonLat, float] | None = None
+    max_alt_m: float | None = None
+    action: str = "land"
 
 
 @runtime_checkable
@@ -105,6 +132,14 @@ class Vehicle(Protocol):
 
     def stop_setpoints(self) -> None:
         """Stop any setpoint resending the backend itself does (MAVSDK's 20 Hz offboard)."""
+
+    def upload_fence(self, fence: FenceSpec, timeout_s: float) -> None:
+        """Give the autopilot ``fence`` (mission protocol, fence items) and enable it with
+        its breach action (PX4 ``GF_ACTION``; ArduPilot ``FENCE_ENABLE``/``FENCE_ACTION``),
+        remembering the parameters it changed."""
+
+    def clear_fence(self, timeout_s: float) -> None:
+        """Remove geonav's fence items and put the changed parameters back."""
 
     def close(self) -> None:
         """Close the link; safe to call twice, never raises."""
