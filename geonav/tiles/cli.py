@@ -14,7 +14,7 @@ from geonav.cliutil import (
     seed_int,
 )
 from geonav.errors import GeonavWarning
-from geonav.tiles import DEFAULT_MEMORY_BUDGET_MB, DSM_UNIT_CHOICES, cli_more
+from geonav.tiles import DEFAULT_MEMORY_BUDGET_MB, DSM_UNIT_CHOICES, cli_more, sample_data
 from geonav.tiles.cli_helpers import parse_bands, parse_bbox, parse_lonlat
 
 __all__ = ["add_parser", "parse_bbox", "parse_lonlat", "run_ingest", "run_synth"]
@@ -70,6 +70,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(handler=run_synth)
 
     cli_more.add_parsers(tsub)
+    sample_data.add_parser(tsub)  # geonav tiles sample-data: the pinned real rasters
 
 
 def _report(scene, out: Path) -> None:
