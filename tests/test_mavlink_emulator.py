@@ -186,3 +186,35 @@ def test_connect_retries_until_a_late_tcp_autopilot_listens() -> None:
         timer.join()
         for emu in started:
             emu.stop()
+
+
+@pytest.mark.parametrize("backend", ["pymavlink", "mavsdk"])
+@pytest.mark.parametrize("autopilot", ["px4", "ardupilot"])
+def test_both_backends_read_the_battery_and_the_fix_and_set_parameters(
+        autopilot: str, backend: str) -> None:
+    cfg = EmulatorConfig(autopilot=autopilot, time_scale=4, boot_s=0.1, origin_s=0.1,
+                         local_position_s=0.1, prearm_s=0.1, battery_pct=63.0)
+    with Emulator(cfg) as emu:
+        v = open_vehicle(emu.connect_url, backend)
+        v.connect(10.0)
+        try:
+            v.request_telemetry(10.0, 3.0)
+            deadline = time.monotonic() + 5
+            while (v.state().battery_pct is None or v.state().gps_fix_type != 3) and \
+                    time.monotonic() < deadline:
+                time.sleep(0.05)
+            s = v.state()
+            assert s.battery_pct == 63.0 and s.battery_v == pytest.approx(15.47, abs=0.01)
+            assert s.gps_fix_type == 3
+            emu.drain_battery(12.0)
+            time.sleep(1.0)
+            assert v.state().battery_pct == 12.0
+            # parameters: an integer (PX4 sends its bytes in the float field) and a float
+            name = "GF_ACTION" if autopilot == "px4" else "FENCE_ACTION"
+            v.set_param(name, 3, True, 3.0)
+            assert v.get_param(name, 3.0) == 3.0 and emu._params()[name] == 3.0
+            ceiling = "GF_MAX_VER_DIST" if autopilot == "px4" else "FENCE_ALT_MAX"
+            v.set_param(ceiling, 42.5, False, 3.0)
+            assert emu._params()[ceiling] == 42.5
+        finally:
+            v.close()

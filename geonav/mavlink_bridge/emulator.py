@@ -211,6 +211,11 @@ class Emulator(HandlersMixin, SafetyMixin, MessagesMixin, PhysicsMixin, LinkMixi
             self._gps_lost_at = self.t_s
             self._event("fault: GPS lost")
 
+    def say(self, severity: int, text: str) -> None:
+        """The autopilot sends a STATUSTEXT (through PX4's gate, as its own would)."""
+        with self._lock:
+            self._statustext(severity, text)
+
     def drain_battery(self, to_pct: float) -> None:
         """The battery drops to ``to_pct`` at once (warnings and failsafe follow)."""
         with self._lock:
