@@ -12,15 +12,24 @@ one MAV_CMD_NAV_FENCE_CIRCLE_INCLUSION (param1 = radius).
 
 from __future__ import annotations
 
+import collections
+import threading
 import time
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 from geonav.errors import CommandRejected, FlightTimeout
 from geonav.mavlink_bridge import modes as M
 from geonav.mavlink_bridge.vehicle import FenceSpec
 
-if TYPE_CHECKING:
-    from geonav.mavlink_bridge.pymavlink_backend import PymavlinkVehicle
+
+class MissionLink(Protocol):
+    """What the mission client needs of the pymavlink backend: a way to send, and the
+    mission replies its receiver thread keeps (time, kind, message) under its lock."""
+
+    _lock: threading.Condition
+    mission_rx: collections.deque[tuple[float, str, Any]]
+
+    def _send_raw(self, name: str, fields: dict[str, Any]) -> None: ...
 
 #: MAV_MISSION_RESULT names for refusals.
 MISSION_RESULTS = {
@@ -51,7 +60,7 @@ def _item(command: int, param1: float, lat_deg: float, lon_deg: float) -> dict[s
     }
 
 
-def upload_fence_items(v: PymavlinkVehicle, fence: FenceSpec, timeout_s: float) -> None:
+def upload_fence_items(v: MissionLink, fence: FenceSpec, timeout_s: float) -> None:
     """Upload ``fence``'s items.
 
     Raises:
@@ -83,7 +92,7 @@ def upload_fence_items(v: PymavlinkVehicle, fence: FenceSpec, timeout_s: float) 
         v._send_raw(*last)
 
 
-def clear_fence_items(v: PymavlinkVehicle, timeout_s: float) -> None:
+def clear_fence_items(v: MissionLink, timeout_s: float) -> None:
     """MISSION_CLEAR_ALL for the fence, retried until its MISSION_ACK.
 
     Raises:
@@ -101,7 +110,7 @@ def clear_fence_items(v: PymavlinkVehicle, timeout_s: float) -> None:
             raise FlightTimeout(f"fence clear: no MISSION_ACK within {timeout_s:.0f} s")
 
 
-def _next_reply(v: PymavlinkVehicle, since: float,
+def _next_reply(v: MissionLink, since: float,
                 until: float) -> tuple[float, str, Any] | None:
     """The first mission reply received after ``since``, waiting until ``until``."""
     with v._lock:
