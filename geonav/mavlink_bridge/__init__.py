@@ -11,11 +11,13 @@ Import the submodules you need; nothing heavy is imported here. Arrows point dow
 * ``sequence`` (gated phases on a vehicle: ready, position, mode, arm, take-off, land),
   ``pump`` (the setpoint stream), ``safety`` (fence, watchdogs), ``conversion`` and
   ``frames`` (scene -> lon/lat -> each autopilot's NED), ``camera_source``, ``record``;
-* ``backends`` (``open_vehicle``: the factory) over ``pymavlink_backend`` and
-  ``mavsdk_backend``, which share ``backend_common``, over ``vehicle`` (the
-  ``Vehicle`` protocol, ``VehicleState``, connection strings) and ``modes``;
+* ``backends`` (``open_vehicle``: the factory) over ``pymavlink_backend`` (with
+  ``pymavlink_mission``, the fence's mission protocol) and ``mavsdk_backend``, which
+  share ``backend_common`` (telemetry store, checked commands, parameters, the fence's
+  parameters), over ``vehicle`` (the ``Vehicle`` protocol, ``VehicleState``,
+  ``FenceSpec``, connection strings), ``modes`` and ``folding``;
 * ``emulator`` (a MAVLink vehicle emulator for tests and dry runs) over its parts
-  ``emulator_config``, ``emulator_link``, ``emulator_physics``, ``emulator_messages``
-  and ``emulator_handlers``;
+  ``emulator_config``, ``emulator_link``, ``emulator_physics``, ``emulator_messages``,
+  ``emulator_safety`` (battery, failsafes, fence) and ``emulator_handlers``;
 * ``cli`` (``geonav fly``, ``geonav emulator``).
 """
