@@ -125,6 +125,8 @@ def _hand_over(ctx: FlightContext, verdict: Verdict) -> EndReport:
         notes.append("the autopilot landed, disarmed")
     elif s.heartbeat_age_s > ctx.cfg.heartbeat_timeout_s:
         notes.append("then the link was lost")
+    else:
+        notes.append(f"the vehicle still flies (mode {s.mode}) after {ctx.t.landing_s:.0f} s")
     note = "; ".join(notes)
     ctx.rec.event(note)
     return EndReport("none", not s.armed, note=note)
