@@ -168,6 +168,32 @@ def run_curriculum(env_factory: Any, init: str | None, algo: str, base_cfg: A3CC
                                device=device)
 
 
+def _warm_start(trainer: Any, checkpoint: str) -> None:
+    """A new stage starts from the previous stage's (or the init's) weights, its auxiliary
+    modules (SAVN's learned loss) included."""
+    from geonav.policy.checkpoint import check_compatible, load_checkpoint
+
+    ck = load_checkpoint(checkpoint)
+    check_compatible(ck.meta, trainer.env, path=ck.path)
+    trainer.model.load_state_dict(ck.model_state)
+    if ck.extra:
+        for name, m in trainer.aux.items():
+            if name in ck.extra:
+                m.load_state_dict(ck.extra[name])
+
+
+def _record_stage(out: Path, state_path: Path, state: dict[str, Any],
+                  checkpoint: Any) -> None:
+    """A finished stage's checkpoint as the curriculum's latest/final, and curriculum.json,
+    each replaced atomically."""
+    for name in ("latest.pt", "final.pt"):
+        shutil.copyfile(checkpoint, out / "checkpoints" / f".{name}.tmp")
+        os.replace(out / "checkpoints" / f".{name}.tmp", out / "checkpoints" / name)
+    tmp = state_path.with_name(".curriculum.json.tmp")
+    tmp.write_text(json.dumps(state, indent=1))
+    os.replace(tmp, state_path)
+
+
 def _run_curriculum(env_factory: Any, init: str | None, algo: str, base_cfg: A3CConfig,
                     cfg: CurriculumConfig | None, *, out_dir: str | os.PathLike[str],
                     criterion: Any, net_cfg: NetConfig | None, callbacks: Sequence[Callback],
@@ -175,7 +201,7 @@ def _run_curriculum(env_factory: Any, init: str | None, algo: str, base_cfg: A3C
                     device: str | None) -> CurriculumResult:
     """The body of :func:`run_curriculum`, under the lock of ``out_dir``."""
     from geonav.convergence import ConvergenceCriterion
-    from geonav.policy.checkpoint import check_compatible, load_checkpoint
+    from geonav.policy.checkpoint import load_checkpoint
     from geonav.policy.engine import build_trainer
     from geonav.policy.teacher import PrevViewSpec, TeacherSpec
 
@@ -239,13 +265,7 @@ def _run_curriculum(env_factory: Any, init: str | None, algo: str, base_cfg: A3C
                                 replace(base_cfg, episodes=cfg.stage_episodes), batch=batch,
                                 device=device, **kwargs)
         if resume is None and prev_ckpt is not None:
-            ck = load_checkpoint(prev_ckpt)
-            check_compatible(ck.meta, trainer.env, path=ck.path)
-            trainer.model.load_state_dict(ck.model_state)
-            if ck.extra:
-                for name, m in trainer.aux.items():
-                    if name in ck.extra:
-                        m.load_state_dict(ck.extra[name])
+            _warm_start(trainer, prev_ckpt)
         if resume is not None:  # the convergence window continues over the whole stage
             from geonav.policy.callbacks import read_metrics
 
@@ -259,12 +279,7 @@ def _run_curriculum(env_factory: Any, init: str | None, algo: str, base_cfg: A3C
                             None if prev_view is None else prev_view.alt_m)
         result.stages.append(stage)
         state["stages"].append(stage.__dict__)
-        for name in ("latest.pt", "final.pt"):
-            shutil.copyfile(res.checkpoint, out / "checkpoints" / f".{name}.tmp")
-            os.replace(out / "checkpoints" / f".{name}.tmp", out / "checkpoints" / name)
-        tmp = state_path.with_name(".curriculum.json.tmp")
-        tmp.write_text(json.dumps(state, indent=1))
-        os.replace(tmp, state_path)
+        _record_stage(out, state_path, state, res.checkpoint)
         prev_ckpt, prev_alt = str(res.checkpoint), alt
         log.info("curriculum stage %d (%g m): %d episodes, converged at %s", i, alt,
                  res.episodes, stop.converged_at)

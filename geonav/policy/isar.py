@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import copy
 import time
+from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -95,6 +96,39 @@ class MetaWorkerMixin:
         if self.events is not None:
             self.events.append(e)
 
+    def step_into(self, seg: Segment, a: int, view: torch.Tensor, prev: torch.Tensor | None,
+                  info: dict[str, Any], tally: EpisodeTally
+                  ) -> tuple[torch.Tensor, torch.Tensor | None, dict[str, Any], bool]:
+        """Take action ``a`` from the current ``view`` (SAVN's and ISAR's acting step): the
+        teacher's log-probabilities at the cell, the step itself recorded in ``seg`` and
+        ``tally``; returns the next view, previous-altitude view, info and whether the
+        episode ended."""
+        if self.teacher is not None:
+            seg.teacher_logp.append(self.teacher.step(info))
+        obs, r, terminated, truncated, info = self.env.step(a)  # type: ignore[attr-defined]
+        seg.views.append(view)
+        if prev is not None:
+            seg.prev_views.append(prev)
+        seg.actions.append(a)
+        seg.rewards.append(float(r))
+        tally.ret += float(r)
+        tally.collisions += int(bool(info["collided"]))
+        tally.t += 1
+        tally.terminated, tally.truncated = bool(terminated), bool(truncated)
+        view, _ = obs_inputs(obs, info, self.frozen)  # type: ignore[attr-defined]
+        return view, self.prev_at(info), info, tally.terminated or tally.truncated
+
+
+@dataclass
+class EpisodeTally:
+    """An episode's running totals in the SAVN/ISAR workers' loops."""
+
+    ret: float = 0.0
+    collisions: int = 0
+    t: int = 0
+    terminated: bool = False
+    truncated: bool = False
+
 
 class ISARWorker(MetaWorkerMixin, A3CWorker):
     """One ISAR worker (see the module docstring)."""
@@ -116,6 +150,20 @@ class ISARWorker(MetaWorkerMixin, A3CWorker):
         w.attach(extra)  # type: ignore[attr-defined]
         return w
 
+    def next_value(self, theta: dict[str, torch.Tensor], view: torch.Tensor,
+                   target: torch.Tensor | None, tfeat: Any, state: Any,
+                   prev: torch.Tensor | None) -> float:
+        """V(s_next) under theta, detached, without advancing the state: per-step path
+        (``target`` given) through functional_call, else the loaded actor net."""
+        with torch.no_grad():
+            if target is not None:
+                _, v_next, _ = torch.func.functional_call(
+                    self.model, theta, (view[None, None], target[None], detach_state(state),
+                                        *prev_args(prev)))
+            else:
+                _, v_next, _ = self.actor_net(view[None, None], tfeat, state, *prev_args(prev))
+        return float(v_next[0, 0])
+
     def run_episode(self, episode: int) -> dict[str, Any]:
         t0 = time.perf_counter()
         cfg = self.cfg
@@ -133,12 +181,11 @@ class ISARWorker(MetaWorkerMixin, A3CWorker):
         state = self.model.initial_state()
         gstate = state
         window: list[torch.Tensor] = []
-        t = 0
-        ep_return, collisions = 0.0, 0
+        tally = EpisodeTally()
+        tfeat: Any = None
         pl = vl = ent = 0.0
         n_seg = n_inner = n_adapt = 0
-        terminated = truncated = False
-        while not (terminated or truncated):
+        while not (tally.terminated or tally.truncated):
             if not per_step:
                 load_values(self.actor_net, theta)
                 with torch.no_grad():
@@ -158,34 +205,14 @@ class ISARWorker(MetaWorkerMixin, A3CWorker):
                         logits, _, state = self.actor_net(view[None, None], tfeat, state,
                                                           *prev_args(prev))
                     a = choose_action(logits[0, 0], False, self.rng)
-                if self.teacher is not None:
-                    seg.teacher_logp.append(self.teacher.step(info))
-                obs, r, terminated, truncated, info = self.env.step(a)
-                seg.views.append(view)
-                if prev is not None:
-                    seg.prev_views.append(prev)
-                seg.actions.append(a)
-                seg.rewards.append(float(r))
-                ep_return += float(r)
-                collisions += int(bool(info["collided"]))
-                t += 1
-                view, _ = obs_inputs(obs, info, self.frozen)
-                prev = self.prev_at(info)
-                if terminated or truncated:
+                view, prev, info, ended = self.step_into(seg, a, view, prev, info, tally)
+                if ended:
                     break
+            t, terminated, truncated = tally.t, tally.terminated, tally.truncated
             done = terminated or truncated
-            if terminated or (truncated and not cfg.loss.bootstrap_on_truncation):
-                bootstrap = 0.0
-            else:  # V(s_next), detached, without advancing the state
-                with torch.no_grad():
-                    if per_step:
-                        _, v_next, _ = torch.func.functional_call(
-                            self.model, theta, (view[None, None], target[None],
-                                                detach_state(state), *prev_args(prev)))
-                    else:
-                        _, v_next, _ = self.actor_net(view[None, None], tfeat, state,
-                                                      *prev_args(prev))
-                bootstrap = float(v_next[0, 0])
+            bootstrap = 0.0 if terminated or (truncated and not cfg.loss.bootstrap_on_truncation) \
+                else self.next_value(theta, view, target if per_step else None, tfeat, state,
+                                     prev)
             if per_step:
                 lg = torch.stack(logits_steps)
                 terms = actor_critic_loss(lg, torch.stack(values_steps), seg.actions,
@@ -221,12 +248,13 @@ class ISARWorker(MetaWorkerMixin, A3CWorker):
                 state = detach_state(state)
                 gstate = state
                 window = []
+        t = tally.t
         self.env_steps += t
         success = bool(info["success"])
         return {"episode": episode, "worker": self.rank, "task": info["task"],
-                "task_index": int(info["task_index"]), "return": ep_return, "length": t,
+                "task_index": int(info["task_index"]), "return": tally.ret, "length": t,
                 "success": success, "spl": spl(success, shortest, t),
-                "collisions": collisions, "shortest_path": shortest,
+                "collisions": tally.collisions, "shortest_path": shortest,
                 "policy_loss": pl / max(n_seg, 1), "value_loss": vl / max(n_seg, 1),
                 "entropy": ent / max(n_seg, 1), "env_steps": t,
                 "wall_s": time.perf_counter() - t0, "inner_updates": n_inner,

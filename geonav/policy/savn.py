@@ -42,6 +42,7 @@ from geonav.policy.functional import (
     teacher_kl,
 )
 from geonav.policy.isar import (
+    EpisodeTally,
     MetaWorkerMixin,
     check_prev_view,
     gradient_path,
@@ -124,10 +125,9 @@ class SAVNWorker(MetaWorkerMixin, A3CWorker):
         state = self.model.initial_state()
         gstate = state
         all_logits, all_values, actions, rewards, kls = [], [], [], [], []
-        t = m = 0
-        ep_return, collisions = 0.0, 0
-        terminated = truncated = False
-        while not (terminated or truncated):
+        m = 0
+        tally = EpisodeTally()
+        while not (tally.terminated or tally.truncated):
             load_values(self.actor_net, theta)
             with torch.no_grad():
                 tfeat = self.actor_net.features(target[None])
@@ -137,21 +137,10 @@ class SAVNWorker(MetaWorkerMixin, A3CWorker):
                     logits, _, state = self.actor_net(view[None, None], tfeat, state,
                                                       *prev_args(prev))
                 a = choose_action(logits[0, 0], False, self.rng)
-                if self.teacher is not None:
-                    seg.teacher_logp.append(self.teacher.step(info))
-                obs, r, terminated, truncated, info = self.env.step(a)
-                seg.views.append(view)
-                if prev is not None:
-                    seg.prev_views.append(prev)
-                seg.actions.append(a)
-                seg.rewards.append(float(r))
-                ep_return += float(r)
-                collisions += int(bool(info["collided"]))
-                t += 1
-                view, _ = obs_inputs(obs, info, self.frozen)
-                prev = self.prev_at(info)
-                if terminated or truncated:
+                view, prev, info, ended = self.step_into(seg, a, view, prev, info, tally)
+                if ended:
                     break
+            t, terminated, truncated = tally.t, tally.terminated, tally.truncated
             logits, values, hs, gstate = segment_forward(
                 self.model, theta, torch.stack(seg.views), target, gstate, hidden=True,
                 prev=seg.prev())
@@ -191,9 +180,9 @@ class SAVNWorker(MetaWorkerMixin, A3CWorker):
         self.env_steps += t
         success = bool(info["success"])
         return {"episode": episode, "worker": self.rank, "task": info["task"],
-                "task_index": int(info["task_index"]), "return": ep_return, "length": t,
+                "task_index": int(info["task_index"]), "return": tally.ret, "length": t,
                 "success": success, "spl": spl(success, shortest, t),
-                "collisions": collisions, "shortest_path": shortest,
+                "collisions": tally.collisions, "shortest_path": shortest,
                 "policy_loss": terms.policy.item(), "value_loss": terms.value.item(),
                 "entropy": terms.entropy.item() / max(t, 1), "env_steps": t,
                 "wall_s": time.perf_counter() - t0, "inner_updates": m,
