@@ -94,3 +94,33 @@ def test_feed_forward_learns_tiny_task():
     res = t.train()
     sr, rnd = greedy_sr(res.model, t.frozen, env), random_sr(env)
     assert sr >= rnd + 0.4, (sr, rnd)
+
+
+def test_critic_warmup_moves_only_the_critic_head():
+    """PPOConfig.critic_warmup: the first rollouts fit the critic head alone (its value
+    loss falls), every other weight stays bit for bit; after them PPO updates everything."""
+    factory = tiny_env_factory(cells=4, max_steps=7)
+    t = BatchedPPOTrainer(factory, tiny_net("random", 32, size=16),
+                          PPOConfig(episodes=10, seed=0, critic_warmup=3, lr=1e-2), batch=8,
+                          tensorboard=False)
+    t._setup()
+    before = {n: p.detach().clone() for n, p in t.model.named_parameters()}
+    ro, _ = t.collect(7, keep_policy=True)
+    returns, _ = t.advantages(ro, ro.values)
+
+    def value_loss():
+        with torch.no_grad():
+            return float((0.5 * (returns - t.recompute(ro)[1]).pow(2)).mean())
+
+    start = value_loss()
+    t.critic_update(ro, returns)
+    assert value_loss() < start  # fitted on that rollout
+    for _ in range(3):
+        assert t.update()[1]["critic_warmup"]
+    for n, p in t.model.named_parameters():
+        same = torch.equal(p, before[n])
+        assert same != n.startswith("critic."), n
+    t.update()  # the fourth is a PPO update: the actor moves
+    assert not torch.equal(t.model.actor.weight, before["actor.weight"])
+    with pytest.raises(Exception, match="critic_warmup must be >= 0"):
+        PPOConfig(critic_warmup=-1)

@@ -50,6 +50,12 @@ class PPOConfig(A3CConfig):
     """epsilon of the clipped surrogate."""
     normalize_advantages: bool = True
     """Standardise the advantages of each minibatch."""
+    critic_warmup: int = 0
+    """Rollouts at the start of training (of each call of ``train``) in which only the
+    critic head learns, by its own Adam at ``lr``, from the value loss; every other weight
+    stays as it is. Meant for fine-tuning a policy whose critic was trained on other tasks
+    (a meta-policy's value loss starts 10-50x a converged one's, and its first updates
+    undo the policy: docs/learning.md §14). 0: none."""
     loss: LossConfig = LossConfig(tau=0.95)
     """gamma, GAE lambda (tau), entropy weight (beta), value_coef."""
 
@@ -58,6 +64,8 @@ class PPOConfig(A3CConfig):
         if self.epochs < 1 or self.minibatches < 1:
             raise ConfigError(f"epochs and minibatches must be >= 1, got {self.epochs}, "
                               f"{self.minibatches}")
+        if self.critic_warmup < 0:
+            raise ConfigError(f"critic_warmup must be >= 0, got {self.critic_warmup}")
         if not 0.0 < self.clip_coef < 1.0:
             raise ConfigError(f"clip_coef must lie in (0, 1), got {self.clip_coef}")
 
@@ -98,11 +106,30 @@ class BatchedPPOTrainer(BatchedTrainer):
             out.append({"total": total, "policy": pg, "value": value, "entropy": entropy})
         return out
 
+    def critic_update(self, ro: RolloutBatch, returns: torch.Tensor) -> dict[str, Any]:
+        """A warm-up update (``critic_warmup``): ``epochs`` Adam steps of the critic head
+        on the rollout's value loss, the policy and every other weight unchanged."""
+        if len(self.run_slices()) > 1:
+            raise ConfigError("critic_warmup is not supported for packed runs (pack = true); "
+                              "run the stage's seeds unit by unit")
+        value = torch.zeros(())
+        for _ in range(self.cfg.epochs):
+            _, values = self.recompute(ro)
+            value = _critic_step(self, values, returns)
+        return {"policy_loss": 0.0, "value_loss": float(value), "entropy": 0.0,
+                "critic_warmup": True}
+
+    warmup_done: int = 0
+    """Critic warm-up rollouts done in this call of ``train`` (``critic_warmup``)."""
+
     def update(self) -> tuple[list[dict[str, Any]], Any]:
         cfg, b = self.cfg, self.run_batch
         ro, finals = self.collect(cfg.t_max, keep_policy=True)
         assert ro.values is not None
         returns, advantages = self.advantages(ro, ro.values)
+        if self.warmup_done < cfg.critic_warmup:
+            self.warmup_done += 1
+            return finals, self.critic_update(ro, returns)
         if not self.net_cfg.recurrent and len(self.run_slices()) == 1:
             # a feed-forward policy needs no sequences: minibatches of single steps
             ro, returns, advantages = flat_steps(ro, returns, advantages)
@@ -121,6 +148,26 @@ class BatchedPPOTrainer(BatchedTrainer):
                   "value_loss": float(o["value"].detach()),
                   "entropy": float(o["entropy"].detach())} for o in outs]
         return finals, stats[0] if len(stats) == 1 else stats
+
+
+def _critic_params(trainer: BatchedPPOTrainer) -> list[torch.Tensor]:
+    names = [n for n, _ in trainer.model.named_parameters()]
+    return [p for n, p in zip(names, trainer.params_list, strict=True)
+            if n.startswith("critic.")]
+
+
+def _critic_step(trainer: BatchedPPOTrainer, values: torch.Tensor, returns: torch.Tensor
+                 ) -> torch.Tensor:
+    """One Adam step of the critic head alone on 1/2 (R - V)^2; returns the loss."""
+    if getattr(trainer, "_critic_opt", None) is None:
+        trainer._critic_opt = torch.optim.Adam(  # type: ignore[attr-defined]
+            _critic_params(trainer), lr=trainer.cfg.lr, eps=trainer.cfg.adam_eps)
+    opt = trainer._critic_opt  # type: ignore[attr-defined]
+    loss = (0.5 * (returns - values).pow(2)).mean()
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    opt.step()
+    return loss.detach()
 
 
 def flat_steps(ro: RolloutBatch, returns: torch.Tensor, advantages: torch.Tensor
