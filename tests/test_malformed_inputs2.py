@@ -350,9 +350,9 @@ def test_outputs_that_are_not_finite_are_refused_before_arming(checkpoint, tmp_p
     import torch
 
     from geonav.errors import CheckpointError
+    from geonav.mavlink_bridge.backends import open_vehicle
     from geonav.mavlink_bridge.emulator import Emulator, EmulatorConfig
     from geonav.mavlink_bridge.flight import FlightConfig, run_flight
-    from geonav.mavlink_bridge.backends import open_vehicle
     from geonav.policy.inference import PolicyRunner
     from geonav.tasks import Lattice
     from geonav.testing import textured_scene
