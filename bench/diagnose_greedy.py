@@ -5,6 +5,7 @@ actions), per target; the sampled policy's success beside it (docs/learning.md Â
 
     python bench/diagnose_greedy.py                       # feed-forward net, 49,152 steps
     python bench/diagnose_greedy.py --recurrent --steps 65536
+    python bench/diagnose_greedy.py --sb3                 # SB3 PPO's policy, same task
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import argparse
 import collections
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -30,6 +32,7 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=49152)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--recurrent", action="store_true", help="the paper's LSTM network")
+    ap.add_argument("--sb3", action="store_true", help="SB3 PPO (MultiInputPolicy) instead")
     ap.add_argument("--cache", default=str(ROOT / "bench" / ".cache"))
     args = ap.parse_args()
 
@@ -43,18 +46,25 @@ def main() -> None:
 
     torch.set_num_threads(1)
     factory = EnvFactory(*view_task(Path(args.cache), args.task, args.targets))
-    net = NetConfig(obs_size_px=64, recurrent=args.recurrent)
-    cfg = PPOConfig(episodes=10 ** 7, total_steps=args.steps, workers=0, seed=args.seed,
-                    eval_every=0)
-    trainer = build_trainer("ppo", "batched", factory, net, cfg, tensorboard=False,
-                            keep_records=False)
-    model = trainer.train().model
     env = factory()
     starts = all_starts(env, None, args.seed)
+    if args.sb3:
+        from stable_baselines3 import PPO
+
+        sb3 = PPO("MultiInputPolicy", factory(), seed=args.seed, verbose=0, device="cpu")
+        sb3.learn(total_timesteps=args.steps)
+    else:
+        net = NetConfig(obs_size_px=64, recurrent=args.recurrent)
+        cfg = PPOConfig(episodes=10 ** 7, total_steps=args.steps, workers=0,
+                        seed=args.seed, eval_every=0)
+        model = build_trainer("ppo", "batched", factory, net, cfg, tensorboard=False,
+                              keep_records=False).train().model
     for greedy in (True, False):
-        res = evaluate_lockstep(model, env, starts, greedy=greedy, seed=args.seed)
-        fails = [e for e in res.episodes if not e["success"]]
-        print(f"{'greedy' if greedy else 'sampled'} SR {res.success_rate:.3f} over "
+        episodes = sb3_episodes(sb3, env, starts, greedy) if args.sb3 else \
+            evaluate_lockstep(model, env, starts, greedy=greedy, seed=args.seed).episodes
+        fails = [e for e in episodes if not e["success"]]
+        sr = 1.0 - len(fails) / len(episodes)
+        print(f"{'greedy' if greedy else 'sampled'} SR {sr:.3f} over "
               f"{len(starts)} starts; {len(fails)} failures, "
               f"{np.mean([e['collisions'] for e in fails]) if fails else 0:.1f} refused "
               "moves each on average")
@@ -69,6 +79,33 @@ def main() -> None:
                     kinds["other"] += 1
             print(f"  greedy failures: {dict(kinds)}; per target: "
                   f"{dict(sorted(collections.Counter(e['task_index'] for e in fails).items()))}")
+
+
+def sb3_episodes(model: Any, env: Any, starts: list[Any], greedy: bool
+                 ) -> list[dict[str, Any]]:
+    """An SB3 policy's episodes from ``starts`` in lock-step (geonav.vecenv), with their
+    success, refused moves and actions."""
+    from geonav.policy.evaluation import _view_table
+    from geonav.vecenv import LatticeVecEnv
+
+    table = _view_table(env, None).numpy()
+    venv = LatticeVecEnv(env.unwrapped, len(starts))
+    venv.reset(tasks=[ti for ti, _ in starts], starts=[c for _, c in starts])
+    target = table[venv.target_index]
+    out: list[dict[str, Any] | None] = [None] * len(starts)
+    actions: list[list[int]] = [[] for _ in starts]
+    while any(o is None for o in out):
+        a, _ = model.predict({"image": table[venv.view_index], "target": target},
+                             deterministic=greedy)
+        for s, act in enumerate(np.asarray(a).tolist()):
+            if out[s] is None:
+                actions[s].append(int(act))
+        for f in venv.step(np.asarray(a), autoreset=False).final:
+            s = f["slot"]
+            if out[s] is None:
+                out[s] = {"success": f["success"], "collisions": f["collisions"],
+                          "task_index": starts[s][0], "actions": actions[s]}
+    return [o for o in out if o is not None]
 
 
 if __name__ == "__main__":
