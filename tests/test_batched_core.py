@@ -37,13 +37,19 @@ LOSS = LossConfig()
 
 @pytest.fixture(scope="module")
 def setup():
-    torch.manual_seed(0)
-    model = ActorCritic(tiny_net("random", 32, size=16)).double()
-    with torch.no_grad():  # non-trivial actor/critic heads (SAVN's init makes them tiny)
-        model.actor.weight.mul_(50.0)
+    return _table_setup(tiny_net("random", 32, size=16), 0, 50.0)
+
+
+def _table_setup(net, seed, actor_scale):
+    """A float64 network on a frozen feature table (12 random rows) with non-trivial
+    actor/critic heads (SAVN's init makes them tiny)."""
+    torch.manual_seed(seed)
+    model = ActorCritic(net).double()
+    with torch.no_grad():
+        model.actor.weight.mul_(actor_scale)
         model.actor.bias.normal_()
         model.critic.bias.normal_()
-    g = torch.Generator().manual_seed(1)
+    g = torch.Generator().manual_seed(seed + 1)
     table = torch.rand(12, model.obs_embed.in_features, generator=g, dtype=torch.float64)
     return model, table
 
@@ -80,18 +86,11 @@ def _cnn_setup(kind, px):
 @pytest.fixture(scope="module")
 def ff_setup():
     """The feed-forward network (NetConfig.recurrent=False: no LSTM, no previous-action
-    input) on a frozen feature table."""
+    input) on a frozen feature table; a smaller actor scale (no LSTM squashes the logits,
+    so float64 rounding grows with it)."""
     from dataclasses import replace
 
-    torch.manual_seed(4)
-    model = ActorCritic(replace(tiny_net("random", 32, size=16), recurrent=False)).double()
-    with torch.no_grad():
-        model.actor.weight.mul_(5.0)
-        model.actor.bias.normal_()
-        model.critic.bias.normal_()
-    g = torch.Generator().manual_seed(5)
-    table = torch.rand(12, model.obs_embed.in_features, generator=g, dtype=torch.float64)
-    return model, table
+    return _table_setup(replace(tiny_net("random", 32, size=16), recurrent=False), 4, 5.0)
 
 
 def _nets(request, kind):

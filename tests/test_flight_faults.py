@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import pytest
 from flight_helpers import FAST as BASE_FAST
-from flight_helpers import META, START, TARGET
+from flight_helpers import META, START, TARGET, fast_emulator, hook_policy
 
 from geonav.errors import ConfigError, FlightTimeout
 from geonav.mavlink_bridge import modes as M
@@ -47,21 +47,6 @@ def scene() -> Any:
     return textured_scene(60.0, 0.5, towers=False)
 
 
-def _emulator(scene: Any, autopilot: str, **kw: Any) -> Emulator:
-    home = scene.frame.to_lonlat(Lattice(scene.bounds_m, 5.0).center(START), 0.0)
-    kw.setdefault("offboard_loss_s", 3.0)
-    kw.setdefault("prearm_s", 3.0)
-    return Emulator(
-        EmulatorConfig(
-            autopilot=autopilot,
-            home=home,
-            time_scale=6.0,
-            boot_s=1.0,
-            origin_s=0.6,
-            local_position_s=1.2,
-            **kw,
-        )
-    )
 
 
 def _fly(scene: Any, emu: Emulator, policy: Any, out: Path, backend: str = "pymavlink",
@@ -77,17 +62,6 @@ def _geonav_commands(emu: Emulator, after_t: float = -1.0) -> list[Any]:
     return [c for c in emu.commands if c.source[0] == GEONAV and c.t_s > after_t]
 
 
-class _Hook(ScriptedPolicy):
-    """Scripted policy that runs ``hook`` before call number ``at``."""
-
-    def __init__(self, actions: list[int], at: int, hook: Any) -> None:
-        super().__init__(actions, META)
-        self.at, self.hook = at, hook
-
-    def act(self, image: np.ndarray, target: np.ndarray) -> int:
-        if self.calls == self.at:
-            self.hook()
-        return super().act(image, target)
 
 
 # --------------------------------------------------------------------------- signals
@@ -186,8 +160,8 @@ def test_fly_says_the_outcome_before_drawing_the_track(scene: Any, tmp_path: Pat
 
 def test_sighup_ends_the_flight_like_ctrl_c(scene: Any, tmp_path: Path) -> None:
     before = signal.getsignal(signal.SIGHUP)  # SIG_IGN when the suite runs under nohup
-    with _emulator(scene, "ardupilot") as emu:
-        policy = _Hook([0, 3] * 20, 2, lambda: os.kill(os.getpid(), signal.SIGHUP))
+    with fast_emulator(scene, "ardupilot") as emu:
+        policy = hook_policy([0, 3] * 20, 2, lambda: os.kill(os.getpid(), signal.SIGHUP))
         result = _fly(scene, emu, policy, tmp_path, target_cell=(9, 9))
         assert result.outcome == "interrupted" and result.signal_name == "SIGHUP"
         assert result.exit_code == 129
@@ -250,7 +224,7 @@ PHASES = {
 @pytest.mark.parametrize("phase", sorted(PHASES))
 def test_operator_wins_at_every_phase(scene: Any, tmp_path: Path, phase: str) -> None:
     autopilot, mode, when, kw = PHASES[phase]
-    with _emulator(scene, autopilot, **kw) as emu:
+    with fast_emulator(scene, autopilot, **kw) as emu:
         gcs = _SecondGCS(emu, when, mode)
         try:
             result = _fly(scene, emu, ScriptedPolicy(path_actions(START, TARGET), META),
@@ -275,7 +249,7 @@ def test_operator_wins_at_every_phase(scene: Any, tmp_path: Path, phase: str) ->
 
 # ------------------------------------------------------------------------ pump faults
 def test_a_setpoint_send_that_raises_ends_in_geonavs_land(scene: Any, tmp_path: Path) -> None:
-    with _emulator(scene, "px4") as emu:
+    with fast_emulator(scene, "px4") as emu:
         vehicle = open_vehicle(emu.connect_url, "pymavlink")
         broken = threading.Event()
         real_send = vehicle.send_position_target
@@ -286,7 +260,7 @@ def test_a_setpoint_send_that_raises_ends_in_geonavs_land(scene: Any, tmp_path: 
             real_send(target, yaw_deg)
 
         vehicle.send_position_target = send  # type: ignore[method-assign]
-        policy = _Hook(path_actions(START, TARGET), 1, broken.set)
+        policy = hook_policy(path_actions(START, TARGET), 1, broken.set)
         cfg = FlightConfig(target_cell=TARGET, start_cell=START, timeouts=FAST)
         result = run_flight(vehicle, scene, policy, cfg, tmp_path)
         assert result.outcome == "safety_stop" and result.exit_code == 6
@@ -300,7 +274,7 @@ def test_a_setpoint_send_that_raises_ends_in_geonavs_land(scene: Any, tmp_path: 
 
 # ------------------------------------------------------------------ pre-flight state
 def test_an_airborne_vehicle_is_refused_without_a_command(scene: Any, tmp_path: Path) -> None:
-    with _emulator(scene, "px4", airborne_alt_m=20.0) as emu:
+    with fast_emulator(scene, "px4", airborne_alt_m=20.0) as emu:
         result = _fly(scene, emu, ScriptedPolicy([1], META), tmp_path)
         assert result.outcome == "refused" and result.exit_code == 3
         assert "already armed" in result.reason and "--takeover-airborne" in result.reason
@@ -310,7 +284,7 @@ def test_an_airborne_vehicle_is_refused_without_a_command(scene: Any, tmp_path: 
 
 
 def test_takeover_airborne_starts_from_the_current_position(scene: Any, tmp_path: Path) -> None:
-    with _emulator(scene, "ardupilot", airborne_alt_m=12.0) as emu:
+    with fast_emulator(scene, "ardupilot", airborne_alt_m=12.0) as emu:
         result = _fly(scene, emu, ScriptedPolicy(path_actions(START, TARGET), META), tmp_path,
                       takeover_airborne=True)
         assert result.success and result.outcome == "reached", result.reason
@@ -325,7 +299,7 @@ def test_takeover_airborne_refuses_a_vehicle_armed_on_the_ground(scene: Any,
                                                                  tmp_path: Path) -> None:
     # Seen on ArduCopter SITL: after an operator's LOITER the vehicle sank to the ground
     # and stayed armed; the refusal said "give a positive number of metres".
-    with _emulator(scene, "ardupilot", airborne_alt_m=0.3) as emu:
+    with fast_emulator(scene, "ardupilot", airborne_alt_m=0.3) as emu:
         result = _fly(scene, emu, ScriptedPolicy([1], META), tmp_path, takeover_airborne=True)
         assert result.outcome == "refused" and result.exit_code == 3
         assert "armed but on the ground" in result.reason, result.reason
@@ -344,7 +318,7 @@ def test_a_px4_whose_preflight_checks_fail_is_refused_in_words(scene: Any, tmp_p
     # the HEARTBEAT at UNINIT for minutes; a second flight was refused after 60 s with
     # "HEARTBEAT system_status STANDBY: not seen ... status 0".
     text = "Preflight: GPS Vertical Pos Drift too high"
-    with _emulator(scene, "px4", preflight_fail=text) as emu:
+    with fast_emulator(scene, "px4", preflight_fail=text) as emu:
         quick = Timeouts(**{**FAST.__dict__, "ready_s": 2.0})
         result = _fly(scene, emu, ScriptedPolicy([1], META), tmp_path, backend, timeouts=quick)
         assert result.outcome == "refused" and result.exit_code == 3, result.reason
@@ -358,8 +332,8 @@ def test_a_px4_whose_preflight_checks_fail_is_refused_in_words(scene: Any, tmp_p
 def test_overshoot_past_the_fence_ends_in_landing(scene: Any, tmp_path: Path) -> None:
     # Fence margin = one 5 m step: setpoints stay 5 m inside the scene, the vehicle may
     # overshoot 2.5 m more. A gust blows it 12 m east of the last setpoint (cell 9 -> x 17.5).
-    with _emulator(scene, "px4") as emu:
-        policy = _Hook([1] * 3, 1, lambda: emu.push(0.0, 12.0))
+    with fast_emulator(scene, "px4") as emu:
+        policy = hook_policy([1] * 3, 1, lambda: emu.push(0.0, 12.0))
         result = _fly(scene, emu, policy, tmp_path, start_cell=(8, 5), target_cell=(10, 5))
         assert result.outcome == "safety_stop", result.reason
         assert "position fence" in result.reason and "breached" in result.reason
@@ -387,7 +361,7 @@ def test_a_dsm_obstacle_in_the_path_is_never_flown_into(
     scene: Any, tmp_path: Path, on_obstacle: str
 ) -> None:
     towers = _tower_scene(scene, (6, 5))
-    with _emulator(towers, "ardupilot") as emu:
+    with fast_emulator(towers, "ardupilot") as emu:
         result = _fly(towers, emu, ScriptedPolicy([1, 1, 1], META), tmp_path,
                       target_cell=(7, 6), max_steps=3, on_obstacle=on_obstacle)
         assert result.end_ok and not emu.armed
@@ -439,9 +413,9 @@ def test_a_dead_autopilot_is_one_line_and_bounded(
     old_hook = threading.excepthook
     threading.excepthook = errors.append
     try:
-        with _emulator(scene, "ardupilot", listen="tcp:127.0.0.1:0") as emu:
+        with fast_emulator(scene, "ardupilot", listen="tcp:127.0.0.1:0") as emu:
             vehicle = open_vehicle(emu.connect_url, backend)
-            policy = _Hook(path_actions(START, TARGET), 1, emu.stop)  # the autopilot dies
+            policy = hook_policy(path_actions(START, TARGET), 1, emu.stop)  # the autopilot dies
             t0 = time.monotonic()
             quick = Timeouts(**{**FAST.__dict__, "command_s": 1.0})
             cfg = FlightConfig(target_cell=TARGET, start_cell=START, timeouts=quick,
@@ -476,7 +450,7 @@ def test_a_dead_autopilot_is_one_line_and_bounded(
 
 
 def test_a_late_ack_of_another_command_is_not_taken_for_lands(scene: Any) -> None:
-    with _emulator(scene, "px4") as emu:
+    with fast_emulator(scene, "px4") as emu:
         v = open_vehicle(emu.connect_url, "pymavlink")
         v.connect(5.0)
         try:
@@ -519,7 +493,7 @@ def test_the_track_picture_is_zoomed_to_the_flight(tmp_path: Path) -> None:
 
 def test_mavsdk_log_goes_to_python_logging(scene: Any, tmp_path: Path, caplog: Any,
                                            capfd: Any) -> None:
-    with _emulator(scene, "px4") as emu, caplog.at_level("DEBUG", logger="mavsdk"):
+    with fast_emulator(scene, "px4") as emu, caplog.at_level("DEBUG", logger="mavsdk"):
         v = open_vehicle(emu.connect_url, "mavsdk")
         v.connect(10.0)
         v.close()
@@ -635,7 +609,7 @@ def test_a_process_freeze_right_after_arming_does_not_disarm(scene: Any, tmp_pat
     import ctypes
 
     freeze = ctypes.PyDLL(None).usleep  # holds the GIL: the whole process stands still
-    with _emulator(scene, "ardupilot", disarm_delay_s=4.0) as emu:
+    with fast_emulator(scene, "ardupilot", disarm_delay_s=4.0) as emu:
         done = threading.Event()
 
         def watch() -> None:

@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from flight_helpers import FAST, META, START, TARGET
+from flight_helpers import FAST, META, START, TARGET, fast_emulator
 
 from geonav.errors import FlightError
 from geonav.geo import LocalNED
@@ -16,7 +16,7 @@ from geonav.mavlink_bridge import modes as M
 from geonav.mavlink_bridge.autonomy import Verdict, step_loop, take_off_and_position
 from geonav.mavlink_bridge.backends import open_vehicle
 from geonav.mavlink_bridge.context import FlightContext
-from geonav.mavlink_bridge.emulator import Emulator, EmulatorConfig
+from geonav.mavlink_bridge.emulator import Emulator
 from geonav.mavlink_bridge.ending import clear_autopilot_fence, end_action, record_result
 from geonav.mavlink_bridge.flight import FlightConfig, ScriptedPolicy, path_actions
 from geonav.mavlink_bridge.preflight import preflight
@@ -29,7 +29,6 @@ from geonav.mavlink_bridge.safety import (
 )
 from geonav.mavlink_bridge.signals import StopSignals
 from geonav.mavlink_bridge.vehicle import VehicleState
-from geonav.tasks import Lattice
 from geonav.testing import textured_scene
 
 
@@ -38,11 +37,6 @@ def scene() -> Any:
     return textured_scene(60.0, 0.5, towers=False)
 
 
-def _emulator(scene: Any, autopilot: str, **kw: Any) -> Emulator:
-    home = scene.frame.to_lonlat(Lattice(scene.bounds_m, 5.0).center(START), 0.0)
-    kw.setdefault("offboard_loss_s", 3.0)
-    return Emulator(EmulatorConfig(autopilot=autopilot, home=home, time_scale=6.0, boot_s=1.0,
-                                   prearm_s=3.0, origin_s=0.6, local_position_s=1.2, **kw))
 
 
 def _context(scene: Any, emu: Emulator, out: Path, backend: str = "pymavlink",
@@ -54,7 +48,7 @@ def _context(scene: Any, emu: Emulator, out: Path, backend: str = "pymavlink",
 
 
 def test_preflight_places_the_flight_and_moves_nothing(scene: Any, tmp_path: Path) -> None:
-    with _emulator(scene, "px4") as emu:
+    with fast_emulator(scene, "px4") as emu:
         ctx = _context(scene, emu, tmp_path)
         try:
             preflight(ctx)
@@ -77,7 +71,7 @@ def test_preflight_places_the_flight_and_moves_nothing(scene: Any, tmp_path: Pat
 
 @pytest.mark.parametrize("autopilot", ["px4", "ardupilot"])
 def test_the_phases_in_order(scene: Any, tmp_path: Path, autopilot: str) -> None:
-    with _emulator(scene, autopilot) as emu:
+    with fast_emulator(scene, autopilot) as emu:
         ctx = _context(scene, emu, tmp_path)
         preflight(ctx)
         # Take-off and positioning: armed in the autonomy mode, at the altitude, over START.

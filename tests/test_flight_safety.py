@@ -9,9 +9,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pytest
-from flight_helpers import FAST, META, START, TARGET
+from flight_helpers import FAST, META, START, TARGET, fast_emulator, hook_policy
 
 from geonav.geo import ScenePoint
 from geonav.mavlink_bridge import modes as M
@@ -20,7 +19,6 @@ from geonav.mavlink_bridge.backends import open_vehicle
 from geonav.mavlink_bridge.emulator import Emulator, EmulatorConfig
 from geonav.mavlink_bridge.flight import FlightConfig, ScriptedPolicy, path_actions, run_flight
 from geonav.mavlink_bridge.record import read_record
-from geonav.tasks import Lattice
 from geonav.testing import textured_scene
 
 #: the policy of the long flights: back and forth, never at the target (9, 9).
@@ -32,11 +30,6 @@ def scene() -> Any:
     return textured_scene(60.0, 0.5, towers=False)
 
 
-def _emulator(scene: Any, autopilot: str, **kw: Any) -> Emulator:
-    home = scene.frame.to_lonlat(Lattice(scene.bounds_m, 5.0).center(START), 0.0)
-    kw.setdefault("offboard_loss_s", 3.0)
-    return Emulator(EmulatorConfig(autopilot=autopilot, home=home, time_scale=6.0, boot_s=1.0,
-                                   prearm_s=3.0, origin_s=0.6, local_position_s=1.2, **kw))
 
 
 def _fly(scene: Any, emu: Emulator, policy: Any, out: Path, backend: str = "pymavlink",
@@ -49,17 +42,6 @@ def _fly(scene: Any, emu: Emulator, policy: Any, out: Path, backend: str = "pyma
                       plot=False)
 
 
-class _Hook(ScriptedPolicy):
-    """Scripted policy that runs ``hook`` before call number ``at``."""
-
-    def __init__(self, actions: list[int], at: int, hook: Any) -> None:
-        super().__init__(actions, META)
-        self.at, self.hook = at, hook
-
-    def act(self, image: np.ndarray, target: np.ndarray) -> int:
-        if self.calls == self.at:
-            self.hook()
-        return super().act(image, target)
 
 
 def _geonav_after(emu: Emulator, t_s: float) -> list[Any]:
@@ -81,7 +63,7 @@ _CLASS_NAME = re.compile(r"\b[A-Z][A-Za-z]+(Error|Timeout|Rejected|Refused|Lost|
 @pytest.mark.parametrize("backend", ["pymavlink", "mavsdk"])
 def test_low_battery_ends_the_flight_before_the_autopilots_critical_level(
         scene: Any, tmp_path: Path, backend: str) -> None:
-    with _emulator(scene, "px4", battery_pct=40.0, battery_drain_pct_per_s=0.5) as emu:
+    with fast_emulator(scene, "px4", battery_pct=40.0, battery_drain_pct_per_s=0.5) as emu:
         result = _fly(scene, emu, ScriptedPolicy(BACK_AND_FORTH, META), tmp_path, backend)
         assert result.outcome == "safety_stop" and result.exit_code == 6, result.reason
         assert "below --min-battery 25%" in result.reason
@@ -99,13 +81,13 @@ def test_low_battery_ends_the_flight_before_the_autopilots_critical_level(
 
 
 def test_a_battery_below_the_floor_is_refused_before_arming(scene: Any, tmp_path: Path) -> None:
-    with _emulator(scene, "ardupilot", battery_pct=20.0) as emu:
+    with fast_emulator(scene, "ardupilot", battery_pct=20.0) as emu:
         result = _fly(scene, emu, ScriptedPolicy([1], META), tmp_path)
         assert result.outcome == "refused" and result.exit_code == 3
         assert "battery at 20% is below --min-battery 25%" in result.reason
         assert not emu.commands_named(M.MAV_CMD_COMPONENT_ARM_DISARM) and not emu.setpoints
         assert emu.fence_items == []  # refused before the fence was given
-    with _emulator(scene, "ardupilot", battery_pct=20.0) as emu:  # --min-battery 0: off
+    with fast_emulator(scene, "ardupilot", battery_pct=20.0) as emu:  # --min-battery 0: off
         result = _fly(scene, emu, ScriptedPolicy([1], META), tmp_path / "off",
                       target_cell=(6, 5), min_battery_pct=0.0)
         assert result.outcome == "reached", result.reason
@@ -115,8 +97,8 @@ def test_a_battery_below_the_floor_is_refused_before_arming(scene: Any, tmp_path
 @pytest.mark.parametrize("backend", ["pymavlink", "mavsdk"])
 def test_the_autopilots_texts_reach_the_console_and_the_record(
         scene: Any, tmp_path: Path, backend: str, caplog: Any) -> None:
-    with _emulator(scene, "px4") as emu, caplog.at_level(logging.WARNING):
-        policy = _Hook([1, 1], 1, lambda: emu.say(4, "Wind speed is above limit"))
+    with fast_emulator(scene, "px4") as emu, caplog.at_level(logging.WARNING):
+        policy = hook_policy([1, 1], 1, lambda: emu.say(4, "Wind speed is above limit"))
         result = _fly(scene, emu, policy, tmp_path, backend, target_cell=(7, 5))
         assert result.outcome == "reached", result.reason
         # PX4 sent it: geonav's heartbeat opened PX4's STATUSTEXT gate
@@ -155,8 +137,8 @@ def test_a_flood_of_texts_is_folded(scene: Any, tmp_path: Path, caplog: Any) -> 
         for i in range(40):
             emu.say(4, f"Battery 1 is low {14.0 - i / 100:.2f}V")
 
-    with _emulator(scene, "ardupilot") as emu, caplog.at_level(logging.WARNING):
-        result = _fly(scene, emu, _Hook([1, 1], 1, flood), tmp_path, target_cell=(7, 5))
+    with fast_emulator(scene, "ardupilot") as emu, caplog.at_level(logging.WARNING):
+        result = _fly(scene, emu, hook_policy([1, 1], 1, flood), tmp_path, target_cell=(7, 5))
         assert result.outcome == "reached", result.reason
     shown = [r.getMessage() for r in caplog.records if "Battery 1 is low" in r.getMessage()]
     assert shown == ["autopilot: Battery 1 is low 14.00V"]  # 39 repeats folded (-vv: DEBUG)
@@ -169,7 +151,7 @@ def test_a_flood_of_texts_is_folded(scene: Any, tmp_path: Path, caplog: Any) -> 
                                                     ("ardupilot", "mavsdk")])
 def test_an_autopilot_failsafe_is_not_an_operator(scene: Any, tmp_path: Path, autopilot: str,
                                                   backend: str) -> None:
-    with _emulator(scene, autopilot, battery_pct=30.0, battery_drain_pct_per_s=0.6,
+    with fast_emulator(scene, autopilot, battery_pct=30.0, battery_drain_pct_per_s=0.6,
                    battery_failsafe="rtl") as emu:
         result = _fly(scene, emu, ScriptedPolicy(BACK_AND_FORTH, META), tmp_path, backend,
                       min_battery_pct=0.0)  # geonav leaves the battery to the autopilot
@@ -184,8 +166,8 @@ def test_an_autopilot_failsafe_is_not_an_operator(scene: Any, tmp_path: Path, au
 
 
 def test_an_operator_is_still_an_operator(scene: Any, tmp_path: Path) -> None:
-    with _emulator(scene, "px4") as emu:
-        policy = _Hook(BACK_AND_FORTH, 2, lambda: emu.operator_mode("posctl"))
+    with fast_emulator(scene, "px4") as emu:
+        policy = hook_policy(BACK_AND_FORTH, 2, lambda: emu.operator_mode("posctl"))
         result = _fly(scene, emu, policy, tmp_path)
         assert result.outcome == "takeover" and result.exit_code == 5, result.reason
         assert "geonav's fence stays on the autopilot" in result.summary()
@@ -199,13 +181,13 @@ def test_an_operator_is_still_an_operator(scene: Any, tmp_path: Path) -> None:
 def test_the_autopilot_holds_the_scenes_fence_and_gives_it_back(
         scene: Any, tmp_path: Path, autopilot: str, backend: str) -> None:
     seen: dict[str, Any] = {}
-    with _emulator(scene, autopilot) as emu:
+    with fast_emulator(scene, autopilot) as emu:
         def look() -> None:
             with emu._lock:
                 seen.update(items=list(emu.fence_items), params=dict(emu._params()),
                             action=emu.fence_action())
 
-        result = _fly(scene, emu, _Hook(path_actions(START, TARGET), 1, look), tmp_path,
+        result = _fly(scene, emu, hook_policy(path_actions(START, TARGET), 1, look), tmp_path,
                       backend, target_cell=TARGET, max_distance_m=20.0)
         assert result.outcome == "reached", result.reason
         corners = {(round(lat, 6), round(lon, 6)) for kind, lat, lon, _ in seen["items"]
@@ -236,12 +218,12 @@ def test_the_autopilot_holds_the_scenes_fence_and_gives_it_back(
 def test_the_autopilot_enforces_the_fence_when_geonav_cannot(scene: Any, tmp_path: Path) -> None:
     """The link dies, then a gust carries the vehicle out of the scene: the autopilot's
     own copy of geonav's fence lands it (geonav's check, the second layer, is blind)."""
-    with _emulator(scene, "ardupilot") as emu:
+    with fast_emulator(scene, "ardupilot") as emu:
         def blow() -> None:
             emu.drop_link(None)
             emu.push(0.0, 40.0)
 
-        result = _fly(scene, emu, _Hook(BACK_AND_FORTH, 1, blow), tmp_path,
+        result = _fly(scene, emu, hook_policy(BACK_AND_FORTH, 1, blow), tmp_path,
                       heartbeat_timeout_s=1.0, timeouts=FAST.__class__(
                           **{**FAST.__dict__, "dead_link_s": 2.0}))
         assert result.outcome == "link_lost" and result.exit_code == 4
@@ -253,8 +235,8 @@ def test_the_autopilot_enforces_the_fence_when_geonav_cannot(scene: Any, tmp_pat
 
 
 def test_no_autopilot_fence_when_asked(scene: Any, tmp_path: Path) -> None:
-    with _emulator(scene, "px4") as emu:
-        result = _fly(scene, emu, _Hook([1], 0, lambda: None), tmp_path, target_cell=(6, 5),
+    with fast_emulator(scene, "px4") as emu:
+        result = _fly(scene, emu, hook_policy([1], 0, lambda: None), tmp_path, target_cell=(6, 5),
                       autopilot_fence=False)
         assert result.outcome == "reached"
         assert not [e for _, e in emu.events if e.startswith("fence")]
@@ -266,8 +248,8 @@ def test_no_autopilot_fence_when_asked(scene: Any, tmp_path: Path) -> None:
 def test_gps_loss_hands_the_vehicle_to_the_autopilot(scene: Any, tmp_path: Path,
                                                      backend: str) -> None:
     # The autopilot waits (its EKF failsafe 60 s away): geonav notices first and stops.
-    with _emulator(scene, "px4", gps_failsafe_s=60.0) as emu:
-        result = _fly(scene, emu, _Hook(BACK_AND_FORTH, 1, emu.lose_gps), tmp_path, backend)
+    with fast_emulator(scene, "px4", gps_failsafe_s=60.0) as emu:
+        result = _fly(scene, emu, hook_policy(BACK_AND_FORTH, 1, emu.lose_gps), tmp_path, backend)
         assert result.outcome == "position_lost" and result.exit_code == 8, result.reason
         line = result.summary()
         assert line.startswith("position lost: no LOCAL_POSITION_NED for ")
@@ -283,8 +265,8 @@ def test_gps_loss_hands_the_vehicle_to_the_autopilot(scene: Any, tmp_path: Path,
 
 def test_gps_loss_the_autopilot_acts_on_first_is_its_failsafe(scene: Any,
                                                               tmp_path: Path) -> None:
-    with _emulator(scene, "ardupilot", gps_failsafe_s=0.3) as emu:
-        result = _fly(scene, emu, _Hook(BACK_AND_FORTH, 1, emu.lose_gps), tmp_path)
+    with fast_emulator(scene, "ardupilot", gps_failsafe_s=0.3) as emu:
+        result = _fly(scene, emu, hook_policy(BACK_AND_FORTH, 1, emu.lose_gps), tmp_path)
         assert result.outcome in ("failsafe", "position_lost"), result.reason
         assert result.end_action == "none"
         assert _geonav_after(emu, _event_t(emu, "fault: GPS lost")) == []
@@ -295,12 +277,12 @@ def test_gps_loss_the_autopilot_acts_on_first_is_its_failsafe(scene: Any,
 # ---------------------------------------------------------------------- one line a fault
 def test_a_lost_link_and_a_refusal_are_one_line_each(scene: Any, tmp_path: Path,
                                                      caplog: Any) -> None:
-    with _emulator(scene, "px4") as emu, caplog.at_level(logging.WARNING):
-        policy = _Hook(path_actions(START, TARGET), 1, lambda: emu.drop_link(None))
+    with fast_emulator(scene, "px4") as emu, caplog.at_level(logging.WARNING):
+        policy = hook_policy(path_actions(START, TARGET), 1, lambda: emu.drop_link(None))
         timeouts = FAST.__class__(**{**FAST.__dict__, "dead_link_s": 2.0})
         lost = _fly(scene, emu, policy, tmp_path / "lost", target_cell=TARGET,
                     heartbeat_timeout_s=1.0, timeouts=timeouts)
-    with _emulator(scene, "ardupilot") as emu, caplog.at_level(logging.WARNING):
+    with fast_emulator(scene, "ardupilot") as emu, caplog.at_level(logging.WARNING):
         emu.refuse_arming("Battery below minimum")
         timeouts = FAST.__class__(**{**FAST.__dict__, "arm_s": 2.0})
         refused = _fly(scene, emu, ScriptedPolicy([1], META), tmp_path / "refused",
@@ -319,7 +301,7 @@ def test_a_lost_link_and_a_refusal_are_one_line_each(scene: Any, tmp_path: Path,
 
 
 def test_a_refused_step_counts_but_is_not_flown(scene: Any, tmp_path: Path) -> None:
-    with _emulator(scene, "px4") as emu:
+    with fast_emulator(scene, "px4") as emu:
         result = _fly(scene, emu, ScriptedPolicy([1], META), tmp_path, target_cell=(5, 7),
                       max_distance_m=11.0)  # the third step east would leave the fence
         assert result.outcome == "safety_stop" and result.steps == 3
