@@ -129,34 +129,48 @@ def _eval_row(model: Any, env: Any, max_starts: int | None, seed: int) -> dict[s
 
 def _sb3_lockstep(model: Any, env: Any, starts: list[Any], greedy: bool, ablate: bool,
                   seed: int) -> tuple[float, float]:
-    """(SR, SPL) of an SB3 policy from ``starts``, stepped in lock-step through
-    :class:`geonav.vecenv.LatticeVecEnv` (GeoNavEnv's semantics) with one batched
-    ``predict`` per step; ablation uses geonav's decoy draws (geonav.policy.evaluation).
-    SB3's policy is feed-forward, so batching changes nothing but speed."""
+    """(SR, SPL) of an SB3 policy from ``starts`` (:func:`sb3_episodes`)."""
+    eps = sb3_episodes(model, env, starts, greedy, ablate, seed)
+    return (float(np.mean([e["success"] for e in eps])),
+            float(np.mean([e["spl"] for e in eps])))
+
+
+def sb3_episodes(model: Any, env: Any, starts: list[Any], greedy: bool, ablate: bool = False,
+                 seed: int = 0) -> list[dict[str, Any]]:
+    """An SB3 policy's episodes from ``starts`` (success, spl, refused moves, task index,
+    actions), stepped in lock-step through :class:`geonav.vecenv.LatticeVecEnv`
+    (GeoNavEnv's semantics) with one batched ``predict`` per step; ablation uses geonav's
+    decoy draws (geonav.policy.evaluation). SB3's policy is feed-forward, so batching
+    changes nothing but speed."""
     from geonav.policy.evaluation import _view_table, ablation_rng, decoy_rows, spl
     from geonav.vecenv import LatticeVecEnv
 
     table = _view_table(env, None).numpy()
     venv = LatticeVecEnv(env.unwrapped, len(starts))
     venv.reset(tasks=[ti for ti, _ in starts], starts=[c for _, c in starts])
-    b = len(starts)
     draws = None
     if ablate:
         horizon = max(int(venv.max_steps[ti]) for ti, _ in starts)
-        draws = np.stack([ablation_rng(seed, s).random(horizon) for s in range(b)])
+        draws = np.stack([ablation_rng(seed, s).random(horizon) for s in range(len(starts))])
     target = table[venv.target_index]
-    active, succ, spls, t = np.ones(b, bool), np.zeros(b), np.zeros(b), 0
-    while active.any():
+    out: list[dict[str, Any] | None] = [None] * len(starts)
+    actions: list[list[int]] = [[] for _ in starts]
+    t = 0
+    while any(o is None for o in out):
         rows = venv.view_index if draws is None else decoy_rows(venv, draws[:, t])
         t += 1
         a, _ = model.predict({"image": table[rows], "target": target}, deterministic=greedy)
-        for f in venv.step(np.asarray(a), autoreset=False).final:
+        a = np.asarray(a)
+        for s, act in enumerate(a.tolist()):
+            if out[s] is None:
+                actions[s].append(int(act))
+        for f in venv.step(a, autoreset=False).final:
             s = f["slot"]
-            if active[s]:
-                active[s] = False
-                succ[s] = f["success"]
-                spls[s] = spl(f["success"], f["shortest_path"], f["length"])
-    return float(succ.mean()), float(spls.mean())
+            if out[s] is None:
+                out[s] = {"success": f["success"], "collisions": f["collisions"],
+                          "spl": spl(f["success"], f["shortest_path"], f["length"]),
+                          "task_index": starts[s][0], "actions": actions[s]}
+    return [o for o in out if o is not None]
 
 
 def _cpu() -> float:

@@ -14,7 +14,6 @@ import argparse
 import collections
 import sys
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -22,7 +21,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from bench_learning import VIEW_TASKS, view_task  # noqa: E402
+from bench_learning import VIEW_TASKS, sb3_episodes, view_task  # noqa: E402
 
 
 def main() -> None:
@@ -79,33 +78,6 @@ def main() -> None:
                     kinds["other"] += 1
             print(f"  greedy failures: {dict(kinds)}; per target: "
                   f"{dict(sorted(collections.Counter(e['task_index'] for e in fails).items()))}")
-
-
-def sb3_episodes(model: Any, env: Any, starts: list[Any], greedy: bool
-                 ) -> list[dict[str, Any]]:
-    """An SB3 policy's episodes from ``starts`` in lock-step (geonav.vecenv), with their
-    success, refused moves and actions."""
-    from geonav.policy.evaluation import _view_table
-    from geonav.vecenv import LatticeVecEnv
-
-    table = _view_table(env, None).numpy()
-    venv = LatticeVecEnv(env.unwrapped, len(starts))
-    venv.reset(tasks=[ti for ti, _ in starts], starts=[c for _, c in starts])
-    target = table[venv.target_index]
-    out: list[dict[str, Any] | None] = [None] * len(starts)
-    actions: list[list[int]] = [[] for _ in starts]
-    while any(o is None for o in out):
-        a, _ = model.predict({"image": table[venv.view_index], "target": target},
-                             deterministic=greedy)
-        for s, act in enumerate(np.asarray(a).tolist()):
-            if out[s] is None:
-                actions[s].append(int(act))
-        for f in venv.step(np.asarray(a), autoreset=False).final:
-            s = f["slot"]
-            if out[s] is None:
-                out[s] = {"success": f["success"], "collisions": f["collisions"],
-                          "task_index": starts[s][0], "actions": actions[s]}
-    return [o for o in out if o is not None]
 
 
 if __name__ == "__main__":
