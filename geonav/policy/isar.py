@@ -274,8 +274,12 @@ def teacher_record(teacher_spec: Any, prev_view_spec: Any) -> dict[str, Any] | N
     if prev_view_spec is not None:
         return {"kind": "input", "prev_alt_m": float(prev_view_spec.alt_m)}
     if teacher_spec is not None:
-        return {"kind": "kl", "checkpoint": str(teacher_spec.checkpoint),
-                "budget": teacher_spec.budget, "fraction": teacher_spec.fraction}
+        rec = {"kind": "kl", "checkpoint": str(teacher_spec.checkpoint),
+               "budget": teacher_spec.budget, "fraction": teacher_spec.fraction}
+        if not teacher_spec.is_default:
+            rec.update(weight=teacher_spec.weight0, schedule=teacher_spec.schedule,
+                       loss=teacher_spec.loss, agree=teacher_spec.agree)
+        return rec
     return None
 
 

@@ -177,6 +177,8 @@ class MetaConfig:
 
 
 TEACHERS = ("kl", "none", "input")
+TEACHER_SCHEDULES = ("linear", "agree")
+TEACHER_LOSSES = ("kl", "ce")
 
 
 @dataclass(frozen=True)
@@ -203,6 +205,20 @@ class CurriculumConfig:
     first_teacher_alt_m: float | None = None
     """Altitude at which the init policy (the teacher of the first stage) was trained;
     only needed when the first stage is in teacher_levels_m (e.g. 300)."""
+    teacher_weight: float = 1.0
+    """lambda's starting value (the paper's reading: 1)."""
+    teacher_schedule: str = "linear"
+    """'linear' (the paper's reading): lambda falls from ``teacher_weight`` to 0 over the
+    first ``teacher_decay_fraction`` of the stage budget. 'agree': lambda holds at
+    ``teacher_weight`` until the student's greedy action equals the teacher's on
+    ``teacher_agree`` of its last 2,048 acting steps, then falls to 0 over the same span
+    (batched engine only)."""
+    teacher_loss: str = "kl"
+    """'kl': lambda * KL(pi_T || pi_theta) (the paper's reading); 'ce': lambda times the
+    cross-entropy of the teacher's greedy action under the student, on the student's own
+    states (DAgger-style distillation; batched engine only)."""
+    teacher_agree: float = 0.9
+    """The agreement at which schedule 'agree' starts to let lambda fall."""
 
     def __post_init__(self) -> None:
         if not self.levels_m:
@@ -213,6 +229,26 @@ class CurriculumConfig:
             raise ConfigError("stage_episodes and max_steps must be >= 1")
         if not 0.0 < self.teacher_decay_fraction <= 1.0:
             raise ConfigError("teacher_decay_fraction must lie in (0, 1]")
+        if self.teacher_schedule not in TEACHER_SCHEDULES:
+            raise ConfigError(f"teacher_schedule must be one of {TEACHER_SCHEDULES}, not "
+                              f"{self.teacher_schedule!r}")
+        if self.teacher_loss not in TEACHER_LOSSES:
+            raise ConfigError(f"teacher_loss must be one of {TEACHER_LOSSES}, not "
+                              f"{self.teacher_loss!r}")
+        if not self.teacher_weight > 0.0:
+            raise ConfigError(f"teacher_weight must be positive, got {self.teacher_weight}")
+        if not 0.0 < self.teacher_agree <= 1.0:
+            raise ConfigError(f"teacher_agree must lie in (0, 1], got {self.teacher_agree}")
+        if self.teacher != "kl" and (self.teacher_schedule, self.teacher_loss,
+                                     self.teacher_weight) != ("linear", "kl", 1.0):
+            raise ConfigError(f"teacher_schedule, teacher_loss and teacher_weight shape the "
+                              f"KL teacher's term; teacher = {self.teacher!r} has none")
+
+    @property
+    def default_teacher_term(self) -> bool:
+        """The paper's reading of the teacher's term (the async engine's only one)."""
+        return (self.teacher_schedule, self.teacher_loss, self.teacher_weight) == \
+            ("linear", "kl", 1.0)
 
     def teacher_at(self, stage: int) -> bool:
         if self.teacher == "none":

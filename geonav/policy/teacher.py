@@ -35,19 +35,46 @@ class TeacherSpec:
         env_factory: the stage's environment at the teacher's altitude (same tasks).
         budget: the stage's episode budget (lambda's schedule).
         fraction: lambda falls from 1 to 0 over this fraction of ``budget``.
+        weight0: lambda's starting value.
+        schedule: 'linear' or 'agree' (:class:`geonav.policy.meta_config.CurriculumConfig`;
+            'agree' is the batched engine's, :class:`~geonav.policy.batched.teacher.
+            BatchedTeacher`).
+        loss: 'kl' or 'ce' (the same; 'ce' batched only).
+        agree: the agreement at which schedule 'agree' lets lambda fall.
     """
 
     checkpoint: str
     env_factory: Any
     budget: int
     fraction: float = 0.25
+    weight0: float = 1.0
+    schedule: str = "linear"
+    loss: str = "kl"
+    agree: float = 0.9
 
     def build(self) -> Teacher:
+        if not self.is_default:
+            from geonav.errors import ConfigError
+
+            raise ConfigError("the curriculum teacher's schedule 'agree', loss 'ce' and "
+                              "weights other than 1 are implemented on engine = 'batched' "
+                              "only; this stage runs on the async engine")
         return Teacher(self)
 
-    def weight(self, episode: int) -> float:
-        """lambda at a stage episode (1-based)."""
-        return kl_weight(episode, self.budget, self.fraction)
+    @property
+    def is_default(self) -> bool:
+        """The paper's reading: lambda 1 -> 0 linearly, KL."""
+        return (self.schedule, self.loss, self.weight0) == ("linear", "kl", 1.0)
+
+    def weight(self, episode: int, agreed_at: int | None = None) -> float:
+        """lambda at a stage episode (1-based). Schedule 'agree': ``weight0`` until the
+        episode ``agreed_at`` at which the agreement was reached (None: not yet), then
+        falling to 0 over the same span as 'linear'."""
+        if self.schedule == "agree":
+            if agreed_at is None or episode <= agreed_at:
+                return self.weight0
+            return self.weight0 * kl_weight(episode - agreed_at, self.budget, self.fraction)
+        return self.weight0 * kl_weight(episode, self.budget, self.fraction)
 
 
 class Teacher:

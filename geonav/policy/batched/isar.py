@@ -42,7 +42,7 @@ import torch
 
 from geonav.errors import ConfigError
 from geonav.policy.batched.core import Adapted, Recorder, factored_step, sample_actions
-from geonav.policy.batched.teacher import BatchedTeacher, kl_terms
+from geonav.policy.batched.teacher import BatchedTeacher
 from geonav.policy.batched.trainer import BatchedTrainer, loss_stats
 from geonav.policy.isar import gradient_path, teacher_record
 from geonav.policy.losses import LossTerms, gae_returns, policy_value_terms
@@ -169,6 +169,9 @@ class BatchedISARTrainer(BatchedTrainer):
                                          state, adapted, None, self.fresh, vi, ti,
                                          self.slot_prev(params, adapted, vi))
         lg = torch.stack(logits)
+        if tlogp:
+            assert self.teacher is not None
+            self.teacher.observe(torch.stack(tlogp), lg.detach(), self.episodes_done)
         masks = self.run_masks(current)  # one run; one per run when packed
         vs, acts = torch.stack(values), torch.stack(actions)
         ret_t, adv_t = segment_advantages(vs, rewards, ends, v_next, cfg.loss, end_values)
@@ -193,8 +196,8 @@ class BatchedISARTrainer(BatchedTrainer):
                                      cfg.loss, d.weights, d.old_logprobs, cfg.clip_coef)
         total = torch.stack([r.total for r in runs]).sum()
         if d.teacher_logprobs is not None:  # + lambda KL(pi_T || pi_theta) in every L_int,
-            assert d.kl_weights is not None  # lambda of each episode (N, B)
-            kl = kl_terms(d.teacher_logprobs, logits) * d.kl_weights
+            assert d.kl_weights is not None and self.teacher is not None  # lambda (N, B)
+            kl = self.teacher.terms(d.teacher_logprobs, logits) * d.kl_weights
             total = total + kl.sum()
             current = d.weights[-1]
             assert current is not None
@@ -265,7 +268,25 @@ class BatchedISARTrainer(BatchedTrainer):
         stats = [loss_stats(LossTerms(torch.tensor(0.0), torch.tensor(pl / b),
                                       torch.tensor(vl / b), torch.tensor(ent / b)),
                             cfg.n_steps * cfg.k_segments) for pl, vl, ent in sums]
+        if self.teacher is not None:  # unpacked: one run
+            stats[0].update(self.teacher_stats(kept))
         return finals, stats[0] if len(stats) == 1 else stats
+
+    def teacher_stats(self, kept: list[SegmentData]) -> dict[str, float]:
+        """The teacher's columns of an update's metrics: its term as it entered the loss
+        (lambda included, per slot, as ``policy_loss``), the mean lambda, the greedy
+        agreement and the mean KL per acting step (:meth:`BatchedTeacher.report`)."""
+        assert self.teacher is not None
+        term = lam = 0.0
+        for d in kept:
+            if d.teacher_logprobs is None or d.kl_weights is None or d.logits is None:
+                continue
+            with torch.no_grad():
+                term += float((self.teacher.terms(d.teacher_logprobs, d.logits)
+                               * d.kl_weights).sum())
+            lam += float(d.kl_weights.mean()) / len(kept)
+        return {"teacher_loss": term / float(self.run_batch), "kl_weight": lam,
+                **self.teacher.report()}
 
     def drop_episodes(self, segments: list[SegmentData], window: list[torch.Tensor],
                       dropped: list[tuple[int, int]]) -> list[torch.Tensor]:

@@ -40,7 +40,7 @@ from torch.nn import functional as F
 
 from geonav.policy.batched.core import Adapted, Recorder, factored_step, sample_actions
 from geonav.policy.batched.isar import gram_matrix, values_dtype
-from geonav.policy.batched.teacher import BatchedTeacher, kl_terms
+from geonav.policy.batched.teacher import BatchedTeacher
 from geonav.policy.batched.trainer import BatchedTrainer, loss_stats
 from geonav.policy.isar import gradient_path, teacher_record
 from geonav.policy.losses import LossTerms, gae_returns, policy_value_terms
@@ -142,7 +142,9 @@ class BatchedSAVNTrainer(BatchedTrainer):
                                                 self.slot_prev(params, adapted, vi, rec))
             hs.append(state[0])
             if tlogp is not None and lam is not None:  # lambda KL(pi_T || pi_theta), (B,)
-                kls.append(kl_terms(tlogp[None].to(dtype), logit[None])[0] * lam)
+                kls.append(self.teacher.terms(tlogp[None].to(dtype), logit[None])[0] * lam)
+                self.teacher.observe(tlogp[None], logit.detach()[None], self.episodes_done,
+                                     torch.from_numpy(alive)[None].to(dev))
             a = sample_actions(logit, self.rng, alive).to(dev)  # draws for live slots only
             res = venv.step(a.cpu().numpy(), autoreset=False)
             if end_values is not None:  # V(s_T) under theta_s at a truncation, detached
@@ -205,6 +207,9 @@ class BatchedSAVNTrainer(BatchedTrainer):
         stats = [loss_stats(LossTerms(r.total / bf, r.policy / bf, r.value / bf,
                                       r.entropy / bf), int(w.sum()) // self.run_batch)
                  for r, w in zip(runs, weights, strict=True)]
+        if self.teacher is not None:  # unpacked: one run
+            stats[0].update({"teacher_loss": float((torch.stack(kls) * mask).sum()) / bf,
+                             **self.teacher.report()})
         return finals, stats[0] if len(stats) == 1 else stats
 
 

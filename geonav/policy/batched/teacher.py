@@ -6,11 +6,19 @@ slot's current cell at the teacher's altitude and the target rendered there; its
 log-probabilities enter lambda * KL(pi_T || pi_theta) in every interaction loss. The
 teacher's image parts are computed once per view (its weights never change), from the
 views of the same lattice at its altitude (the same view indices as the student's).
+
+Beyond the paper's reading (the spec's ``loss``, ``schedule`` and ``weight0``): the term
+may be the cross-entropy of the teacher's greedy action (DAgger-style distillation on the
+student's own states), and lambda may hold until the student agrees with the teacher.
+:meth:`BatchedTeacher.observe` keeps, over the acting steps, the agreement of the two
+greedy actions and the KL, which the trainers report with each update.
 """
 
 from __future__ import annotations
 
 from typing import Any
+
+from collections import deque
 
 import torch
 
@@ -42,6 +50,10 @@ class BatchedTeacher:
         self.params: dict[str, torch.Tensor] = dict(self.model.named_parameters())
         self.tables = ActingTables(self.params, self.model.cfg.embed_dim, venv.n_views,
                                    features)
+        self.agreed_at: int | None = None
+        """Schedule 'agree': the stage episode at which the agreement was reached."""
+        self.recent: deque[tuple[int, int]] = deque()  # (steps, agreeing steps) per call
+        self.tally = [0, 0, 0.0]  # steps, agreeing steps, KL sum since the last report
         z = torch.zeros(n_slots, self.model.cfg.lstm_size, device=device)
         self.state: State = (z, z.clone(),
                              torch.zeros(n_slots, self.model.cfg.n_actions, device=device))
@@ -56,7 +68,47 @@ class BatchedTeacher:
         return torch.log_softmax(logits, dim=-1)
 
     def weight(self, episode: int) -> float:
-        return float(self.spec.weight(episode))
+        return float(self.spec.weight(episode, self.agreed_at))
+
+    def terms(self, teacher_logp: torch.Tensor, logits: torch.Tensor) -> torch.Tensor:
+        """(T, B) the teacher's term per step and slot before lambda: KL(pi_T || pi_theta),
+        or with loss 'ce' -log pi_theta(argmax pi_T)."""
+        if self.spec.loss == "ce":
+            logp = torch.log_softmax(logits, dim=-1)
+            return -logp.gather(-1, teacher_logp.argmax(-1, keepdim=True)).squeeze(-1)
+        return kl_terms(teacher_logp, logits)
+
+    @torch.no_grad()
+    def observe(self, teacher_logp: torch.Tensor, logits: torch.Tensor, episode: int,
+                mask: torch.Tensor | None = None, window: int = 2048) -> None:
+        """Acting steps (T, B, A) each, ``mask`` (T, B) of live steps: tally the greedy
+        agreement and the KL; schedule 'agree' marks ``episode`` (episodes done so far)
+        once the last ``window`` steps agree at the spec's level."""
+        same = (teacher_logp.argmax(-1) == logits.argmax(-1))
+        kl = kl_terms(teacher_logp.to(logits.dtype), logits)
+        if mask is not None:
+            live = mask.bool()
+            same, kl = same[live], kl[live]
+        n, k = int(same.numel()), int(same.sum())
+        self.tally[0] += n
+        self.tally[1] += k
+        self.tally[2] += float(kl.sum())
+        self.recent.append((n, k))
+        while sum(x for x, _ in self.recent) - self.recent[0][0] >= window:
+            self.recent.popleft()
+        steps = sum(x for x, _ in self.recent)
+        if self.agreed_at is None and steps >= window and \
+                sum(y for _, y in self.recent) >= self.spec.agree * steps:
+            self.agreed_at = int(episode)
+
+    def report(self) -> dict[str, float]:
+        """The agreement and mean KL per step since the last report (the metrics of an
+        update), and the episode at which schedule 'agree' was met (-1: not yet)."""
+        n, k, kl = self.tally
+        self.tally = [0, 0, 0.0]
+        return {"teacher_agree": k / n if n else float("nan"),
+                "teacher_kl": kl / n if n else float("nan"),
+                "teacher_agreed_at": -1 if self.agreed_at is None else self.agreed_at}
 
 
 def kl_terms(teacher_logp: torch.Tensor, logits: torch.Tensor) -> torch.Tensor:
