@@ -19,7 +19,11 @@ under bench/.cache/altitude). Then, per seed, a student at 15 m under each varia
   the teacher's on 90 % of its acting steps, then falling;
 - ``ce-agree``: DAgger-style distillation: the cross-entropy of the teacher's greedy action
   on the student's own states, held the same way;
-- ``kl-w5``: the paper's schedule with lambda starting at 5.
+- ``kl-w5``: the paper's schedule with lambda starting at 5;
+- ``kl-mask``, ``kl-mask-agree``, ``ce-mask-agree``: the teacher's distribution
+  renormalised over the moves possible at the student's cell at 15 m (a cell blocked at
+  15 m but free at 45 m gets probability 0), with the paper's schedule or held until
+  agreement.
 
 Every ``--eval-every`` episodes the student is evaluated greedily from every start cell
 of every target at 15 m, and, in lock-step along those same episodes, the teacher is fed
@@ -27,8 +31,8 @@ the render of the same cell at 45 m: the fraction of steps where the two greedy 
 agree. Each update's teacher term (lambda included, per slot, beside the policy loss),
 lambda, the acting agreement and the KL per step come from the trainer's metrics. The
 teacher's own figures: greedy SR at 45 m, and greedy SR when it drives at 15 m (it acts on
-45 m renders of the 15 m episode's cells; equal to the 45 m SR unless the start sets
-differ), which is the most a perfect imitation could reach.
+45 m renders of the 15 m episode's cells), which is the most a perfect imitation could
+reach, and the same with its moves masked to those possible at 15 m.
 
 The rule, fixed before the runs: episodes until the greedy SR from every start at 15 m is
 >= ``--rule`` (0.9) at two evaluations in a row (the first of the two), capped at
@@ -58,6 +62,9 @@ VARIANTS = {  # name: (warm start, teacher options or None)
     "kl-agree": (True, {"schedule": "agree"}),
     "ce-agree": (True, {"schedule": "agree", "loss": "ce"}),
     "kl-w5": (True, {"weight0": 5.0}),
+    "kl-mask": (True, {"mask": "feasible"}),
+    "kl-mask-agree": (True, {"mask": "feasible", "schedule": "agree"}),
+    "ce-mask-agree": (True, {"mask": "feasible", "schedule": "agree", "loss": "ce"}),
 }
 HIGH, LOW = 45.0, 15.0
 
@@ -105,11 +112,12 @@ def view_table(env: Any, net_cfg: Any) -> Any:
 
 
 def lockstep(actor: Any, actor_table: Any, env: Any, other: Any = None,
-             other_table: Any = None) -> dict[str, float]:
+             other_table: Any = None, mask: bool = False) -> dict[str, float]:
     """Greedy episodes of ``actor`` from every start of ``env`` (its views from
     ``actor_table``), all at once; with ``other``, that policy is stepped along the same
     cells on ``other_table`` (the same rows at another altitude) and the fraction of live
-    steps where the two greedy actions agree is returned beside SR and SPL."""
+    steps where the two greedy actions agree is returned beside SR and SPL. ``mask``:
+    the actor chooses among the moves possible at its cell only."""
     import torch
 
     from geonav.policy.evaluation import all_starts, spl
@@ -130,6 +138,8 @@ def lockstep(actor: Any, actor_table: Any, env: Any, other: Any = None,
         while active.any():
             rows = torch.from_numpy(venv.view_index)
             logits, _, state = actor(actor_table[rows].unsqueeze(0), tgt, state)
+            if mask:
+                logits = logits.masked_fill(~torch.from_numpy(venv.feasible_moves()), -1e9)
             a = logits[0].argmax(-1)
             if other is not None:
                 ol, _, ostate = other(other_table[rows].unsqueeze(0), otgt, ostate)
@@ -274,7 +284,9 @@ def summary(runs: list[dict[str, Any]], cap: int) -> str:
         rs = [r for r in runs if r["variant"] == v]
         eps = [r["converged_at"] if r["converged_at"] is not None else cap + 1 for r in rs]
         med = statistics.median(eps)
-        fmt = (lambda e: f">{cap}" if e > cap else f"{e:g}")
+
+        def fmt(e: float) -> str:
+            return f">{cap}" if e > cap else f"{e:g}"
         fin = [r["rows"][-1] for r in rs]
         first = [r["rows"][1] if len(r["rows"]) > 1 else r["rows"][0] for r in rs]
         ratio = [f.get("teacher_loss", 0.0) / max(abs(f.get("policy_loss", 0.0)), 1e-9)
@@ -333,8 +345,10 @@ def main(argv: list[str] | None = None) -> int:
         t15, t45 = view_table(env15, ck.net_config), view_table(env45, ck.net_config)
         own = lockstep(tmodel, t45, env45)
         driven = lockstep(tmodel, t45, env15)
+        masked = lockstep(tmodel, t45, env15, mask=True)
         log(f"{enc}: teacher greedy SR at 45 m {own['sr']:.3f} (SPL {own['spl']:.3f}); "
-            f"driving at 15 m on 45 m renders {driven['sr']:.3f}")
+            f"driving at 15 m on 45 m renders {driven['sr']:.3f}, masked to the moves "
+            f"possible at 15 m {masked['sr']:.3f}")
         tables = {"env15": env15, "t15": t15, "t45": t45}
         runs = []
         for seed in (int(s) for s in args.seeds.split(",")):
@@ -345,10 +359,11 @@ def main(argv: list[str] | None = None) -> int:
                 log(f"  {v} s{seed}: converged at {runs[-1]['converged_at']} "
                     f"({runs[-1]['wall_s']:.0f} s)")
                 report["encoders"][enc] = {"teacher45": own, "teacher_driven15": driven,
-                                           "runs": runs}
+                                           "teacher_masked15": masked, "runs": runs}
                 if args.json:
                     Path(args.json).write_text(json.dumps(report, indent=1))
-        print(f"\n{enc}: teacher 45 m SR {own['sr']:.2f}, driving at 15 m {driven['sr']:.2f}")
+        print(f"\n{enc}: teacher 45 m SR {own['sr']:.2f}, driving at 15 m {driven['sr']:.2f}, "
+              f"masked {masked['sr']:.2f}")
         print(summary(runs, args.episodes))
     return 0
 

@@ -140,6 +140,7 @@ class LatticeVecEnv:
         self.target_view = np.asarray([self.view_of(i, tuple(self.target[i]))
                                        for i in range(self.n_tasks)], np.int64)
         self._blocked = [tm.blocked.astype(bool) for tm in u.task_maps]
+        self._walls: np.ndarray | None = None  # built by feasible_moves
         self._dist = [tm.dist_to_target.astype(np.int64) for tm in u.task_maps]
         self._starts = [np.asarray(u.start_cells(i), np.int64) for i in range(self.n_tasks)]
         self.view_task = np.tile(np.repeat(np.arange(self.n_tasks), sizes),
@@ -309,6 +310,18 @@ class LatticeVecEnv:
             self.steps[s] = 0
             self.ep_return[s] = 0.0
             self.collisions[s] = 0
+
+    def feasible_moves(self) -> np.ndarray:
+        """(B, A) bool: whether each action moves each slot (stays on its task's lattice and
+        does not enter a blocked cell); the others are refused as collisions."""
+        if self._walls is None:  # (tasks, nx + 2, ny + 2): blocked, or off the lattice
+            walls = np.ones((self.n_tasks, int(self.nx.max()) + 2, int(self.ny.max()) + 2),
+                            bool)
+            for i, b in enumerate(self._blocked):
+                walls[i, 1:b.shape[0] + 1, 1:b.shape[1] + 1] = b
+            self._walls = walls
+        nxt = self.cell[:, None, :] + _MOVES[None] + 1              # (B, A, 2), padded
+        return ~self._walls[self.task[:, None], nxt[..., 0], nxt[..., 1]]
 
     def step(self, actions: Any, *, autoreset: bool = True) -> StepResult:
         """Move every slot by its action (B,) and auto-reset the slots that finished."""

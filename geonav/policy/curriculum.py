@@ -246,7 +246,7 @@ def _run_curriculum(env_factory: Any, init: str | None, algo: str, base_cfg: A3C
                 teacher = TeacherSpec(str(prev_ckpt), prev_factory, cfg.stage_episodes,
                                       cfg.teacher_decay_fraction, cfg.teacher_weight,
                                       cfg.teacher_schedule, cfg.teacher_loss,
-                                      cfg.teacher_agree)
+                                      cfg.teacher_agree, cfg.teacher_mask)
         stop = ConvergenceStop(criterion)
         kwargs: dict[str, Any] = {"out_dir": stage_dir, "resume": resume,
                                   "callbacks": [stop, *callbacks], "mp_context": mp_context}
@@ -269,8 +269,9 @@ def _run_curriculum(env_factory: Any, init: str | None, algo: str, base_cfg: A3C
         if teacher is not None and not teacher.is_default and \
                 trainer.engine_choice.engine != "batched":
             raise ConfigError(f"curriculum stage {i} ({alt:g} m): teacher_schedule "
-                              f"{cfg.teacher_schedule!r}, teacher_loss {cfg.teacher_loss!r} "
-                              f"and teacher_weight {cfg.teacher_weight:g} need the batched "
+                              f"{cfg.teacher_schedule!r}, teacher_loss {cfg.teacher_loss!r}, "
+                              f"teacher_mask {cfg.teacher_mask!r} and teacher_weight "
+                              f"{cfg.teacher_weight:g} need the batched "
                               f"engine, but this stage runs on the async one "
                               f"({trainer.engine_choice.reason})")
         if resume is None and prev_ckpt is not None:

@@ -278,7 +278,8 @@ def teacher_record(teacher_spec: Any, prev_view_spec: Any) -> dict[str, Any] | N
                "budget": teacher_spec.budget, "fraction": teacher_spec.fraction}
         if not teacher_spec.is_default:
             rec.update(weight=teacher_spec.weight0, schedule=teacher_spec.schedule,
-                       loss=teacher_spec.loss, agree=teacher_spec.agree)
+                       loss=teacher_spec.loss, agree=teacher_spec.agree,
+                       mask=teacher_spec.mask)
         return rec
     return None
 

@@ -179,6 +179,7 @@ class MetaConfig:
 TEACHERS = ("kl", "none", "input")
 TEACHER_SCHEDULES = ("linear", "agree")
 TEACHER_LOSSES = ("kl", "ce")
+TEACHER_MASKS = ("none", "feasible")
 
 
 @dataclass(frozen=True)
@@ -219,6 +220,13 @@ class CurriculumConfig:
     states (DAgger-style distillation; batched engine only)."""
     teacher_agree: float = 0.9
     """The agreement at which schedule 'agree' starts to let lambda fall."""
+    teacher_mask: str = "none"
+    """'none' (the paper's reading); 'feasible': the teacher's distribution is renormalised
+    over the moves that are possible at the student's cell at the student's altitude (a
+    move into a cell blocked there, or off the lattice, gets probability 0), so the
+    higher-level policy is queried about the moves the lower level has (batched engine
+    only). The mask is the trainer's knowledge of the lattice, like the collision
+    penalty; the student never sees it."""
 
     def __post_init__(self) -> None:
         if not self.levels_m:
@@ -239,16 +247,19 @@ class CurriculumConfig:
             raise ConfigError(f"teacher_weight must be positive, got {self.teacher_weight}")
         if not 0.0 < self.teacher_agree <= 1.0:
             raise ConfigError(f"teacher_agree must lie in (0, 1], got {self.teacher_agree}")
-        if self.teacher != "kl" and (self.teacher_schedule, self.teacher_loss,
-                                     self.teacher_weight) != ("linear", "kl", 1.0):
-            raise ConfigError(f"teacher_schedule, teacher_loss and teacher_weight shape the "
-                              f"KL teacher's term; teacher = {self.teacher!r} has none")
+        if self.teacher_mask not in TEACHER_MASKS:
+            raise ConfigError(f"teacher_mask must be one of {TEACHER_MASKS}, not "
+                              f"{self.teacher_mask!r}")
+        if self.teacher != "kl" and not self.default_teacher_term:
+            raise ConfigError(f"teacher_schedule, teacher_loss, teacher_weight and "
+                              f"teacher_mask shape the KL teacher's term; teacher = "
+                              f"{self.teacher!r} has none")
 
     @property
     def default_teacher_term(self) -> bool:
         """The paper's reading of the teacher's term (the async engine's only one)."""
-        return (self.teacher_schedule, self.teacher_loss, self.teacher_weight) == \
-            ("linear", "kl", 1.0)
+        return (self.teacher_schedule, self.teacher_loss, self.teacher_weight,
+                self.teacher_mask) == ("linear", "kl", 1.0, "none")
 
     def teacher_at(self, stage: int) -> bool:
         if self.teacher == "none":

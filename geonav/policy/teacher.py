@@ -41,6 +41,8 @@ class TeacherSpec:
             BatchedTeacher`).
         loss: 'kl' or 'ce' (the same; 'ce' batched only).
         agree: the agreement at which schedule 'agree' lets lambda fall.
+        mask: 'none' or 'feasible' (the teacher renormalised over the student's possible
+            moves; batched only).
     """
 
     checkpoint: str
@@ -51,20 +53,22 @@ class TeacherSpec:
     schedule: str = "linear"
     loss: str = "kl"
     agree: float = 0.9
+    mask: str = "none"
 
     def build(self) -> Teacher:
         if not self.is_default:
             from geonav.errors import ConfigError
 
-            raise ConfigError("the curriculum teacher's schedule 'agree', loss 'ce' and "
-                              "weights other than 1 are implemented on engine = 'batched' "
-                              "only; this stage runs on the async engine")
+            raise ConfigError("the curriculum teacher's schedule 'agree', loss 'ce', mask "
+                              "'feasible' and weights other than 1 are implemented on "
+                              "engine = 'batched' only; this stage runs on the async engine")
         return Teacher(self)
 
     @property
     def is_default(self) -> bool:
-        """The paper's reading: lambda 1 -> 0 linearly, KL."""
-        return (self.schedule, self.loss, self.weight0) == ("linear", "kl", 1.0)
+        """The paper's reading: lambda 1 -> 0 linearly, KL, no mask."""
+        return (self.schedule, self.loss, self.weight0, self.mask) == \
+            ("linear", "kl", 1.0, "none")
 
     def weight(self, episode: int, agreed_at: int | None = None) -> float:
         """lambda at a stage episode (1-based). Schedule 'agree': ``weight0`` until the

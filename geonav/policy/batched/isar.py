@@ -124,7 +124,8 @@ class BatchedISARTrainer(BatchedTrainer):
         for t in range(n):
             vi, ti = self.slot_indices()
             if self.teacher is not None:
-                tlogp.append(self.teacher.step(vi, ti, self.fresh))
+                tlogp.append(self.teacher.step(vi, ti, self.fresh, self.venv.feasible_moves()
+                                               if self.teacher.spec.mask != "none" else None))
                 lams.append([self.teacher.weight(int(k)) for k in self.slot_episode])
             if keep:
                 views.append(vi)

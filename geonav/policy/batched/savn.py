@@ -132,7 +132,9 @@ class BatchedSAVNTrainer(BatchedTrainer):
                            dtype=dtype, device=dev) if self.teacher is not None else None
         while alive.any():
             vi, ti = self.slot_indices()
-            tlogp = self.teacher.step(vi, ti, torch.full((b,), t == 0, device=dev)) \
+            tlogp = self.teacher.step(vi, ti, torch.full((b,), t == 0, device=dev),
+                                      venv.feasible_moves()
+                                      if self.teacher.spec.mask != "none" else None) \
                 if self.teacher is not None else None
             if tgt_f is None:
                 tgt_f = self.slot_views(params, adapted, ti, rec)

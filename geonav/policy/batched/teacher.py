@@ -16,10 +16,10 @@ greedy actions and the KL, which the trainers report with each update.
 
 from __future__ import annotations
 
+from collections import deque
 from typing import Any
 
-from collections import deque
-
+import numpy as np
 import torch
 
 from geonav.policy.batched.core import ActingTables, core_step, reset_state
@@ -59,12 +59,19 @@ class BatchedTeacher:
                              torch.zeros(n_slots, self.model.cfg.n_actions, device=device))
 
     @torch.no_grad()
-    def step(self, view_idx: torch.Tensor, target_idx: torch.Tensor,
-             start: torch.Tensor) -> torch.Tensor:
-        """(B, A) log pi_T at the slots' cells; ``start`` (B,) zeroes new episodes' state."""
+    def step(self, view_idx: torch.Tensor, target_idx: torch.Tensor, start: torch.Tensor,
+             feasible: np.ndarray | None = None) -> torch.Tensor:
+        """(B, A) log pi_T at the slots' cells; ``start`` (B,) zeroes new episodes' state.
+        ``feasible`` (B, A), the student's possible moves
+        (:meth:`geonav.vecenv.LatticeVecEnv.feasible_moves`), renormalises pi_T over them
+        with mask 'feasible' (a slot with none keeps pi_T whole)."""
         state = reset_state(self.state, start)
         logits, _, self.state = core_step(self.params, self.model.cfg.embed_dim, state,
                                           pre=self.tables.pre(view_idx, target_idx))
+        if self.spec.mask == "feasible" and feasible is not None:
+            ok = torch.from_numpy(np.asarray(feasible, bool)).to(logits.device)
+            ok |= ~ok.any(-1, keepdim=True)
+            logits = logits.masked_fill(~ok, -1e9)  # finite: 0 * log 0 stays 0 in the KL
         return torch.log_softmax(logits, dim=-1)
 
     def weight(self, episode: int) -> float:
