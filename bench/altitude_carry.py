@@ -23,7 +23,7 @@ under bench/.cache/altitude). Then, per seed, a student at 15 m under each varia
 - ``kl-mask``, ``kl-mask-agree``, ``ce-mask-agree``: the teacher's distribution
   renormalised over the moves possible at the student's cell at 15 m (a cell blocked at
   15 m but free at 45 m gets probability 0), with the paper's schedule or held until
-  agreement.
+  agreement (``kl-mask-agree80``: until 80 %, not 90 %).
 
 Every ``--eval-every`` episodes the student is evaluated greedily from every start cell
 of every target at 15 m, and, in lock-step along those same episodes, the teacher is fed
@@ -65,6 +65,7 @@ VARIANTS = {  # name: (warm start, teacher options or None)
     "kl-mask": (True, {"mask": "feasible"}),
     "kl-mask-agree": (True, {"mask": "feasible", "schedule": "agree"}),
     "ce-mask-agree": (True, {"mask": "feasible", "schedule": "agree", "loss": "ce"}),
+    "kl-mask-agree80": (True, {"mask": "feasible", "schedule": "agree", "agree": 0.8}),
 }
 HIGH, LOW = 45.0, 15.0
 
@@ -250,7 +251,7 @@ def run_student(cache: Path, factory: Any, net_cfg: Any, teacher_ckpt: str, vari
         kwargs["teacher"] = TeacherSpec(teacher_ckpt, replace(factory, alt_m=HIGH), episodes,
                                         0.25, **topts)
     stage_net = load_checkpoint(teacher_ckpt).net_config if warm else net_cfg
-    out = cache / "students" / f"{net_cfg.encoder}-{variant}-s{seed}"
+    out = cache / "students" / f"{net_cfg.encoder}-{variant}-s{seed}-e{episodes}"
     if out.exists():
         import shutil
 
