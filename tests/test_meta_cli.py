@@ -116,3 +116,23 @@ def test_train_isar_base_loss_option(files, tmp_path, capsys):
     assert config["isar"]["clip_coef"] == 0.1 and config["engine"]["name"] == "batched"
     with pytest.raises(ConfigError, match="batched engine only"):
         _run(base + ["--episodes", "3", "--engine", "async", "--out", str(tmp_path / "a")])
+
+
+def test_curriculum_teacher_variants_from_the_command_line(files, tmp_path):
+    """--teacher-mask/--teacher-schedule/--teacher-agree reach the stage's teacher (its
+    config.json says so); on the async engine they are refused with one clear line."""
+    from geonav.errors import ConfigError
+
+    scene, tasks = files
+    common = ["--scene", str(scene), "--tasks", str(tasks), "--obs-size", "32",
+              "--encoder", "random", "--no-progress", "--levels", "45,15",
+              "--stage-episodes", "3", "--window", "50", "--teacher-mask", "feasible",
+              "--teacher-schedule", "agree", "--teacher-agree", "0.8"]
+    cur = tmp_path / "cur"
+    assert _run(["curriculum", "--out", str(cur), "--engine", "batched", *common]) == 0
+    config = json.loads((cur / "stage_1_15m" / "config.json").read_text())
+    assert config["teacher"]["mask"] == "feasible" and config["teacher"]["agree"] == 0.8
+    assert config["teacher"]["schedule"] == "agree"
+    with pytest.raises(ConfigError, match="need the batched engine"):
+        _run(["curriculum", "--out", str(tmp_path / "a"), "--engine", "async",
+              "--workers", "0", *common])

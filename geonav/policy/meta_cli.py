@@ -260,6 +260,20 @@ def add_parsers(subparsers: Any) -> None:
                    "--init checkpoint trained with --prev-view-input)")
     c.add_argument("--teacher-levels", default=None,
                    help="stages that get the teacher (default: all after the first)")
+    c.add_argument("--teacher-mask", choices=["none", "feasible"], default=None,
+                   help="'feasible': the KL teacher renormalised over the moves possible at "
+                   "the student's cell and altitude (batched engine; docs/learning.md §15)")
+    c.add_argument("--teacher-schedule", choices=["linear", "agree"], default=None,
+                   help="lambda 1 -> 0 over the first quarter of the stage (linear, the "
+                   "paper's reading) or held until the student agrees with the teacher "
+                   "(agree; batched engine)")
+    c.add_argument("--teacher-agree", type=positive_float, default=None,
+                   help="the agreement at which schedule 'agree' lets lambda fall (0.9)")
+    c.add_argument("--teacher-loss", choices=["kl", "ce"], default=None,
+                   help="KL to the teacher (default) or the cross-entropy of its greedy "
+                   "action (ce; batched engine)")
+    c.add_argument("--teacher-weight", type=positive_float, default=None,
+                   help="lambda's starting value (1)")
     c.add_argument("--window", type=positive_int, default=None, help="convergence W (default 500)")
     c.add_argument("--threshold", type=positive_float, default=None, help="convergence SR (0.95)")
     c.add_argument("--hold", type=positive_float, default=None,
@@ -324,7 +338,12 @@ def run_curriculum_cmd(args: argparse.Namespace) -> int:
     cur_d = dict(toml.get("curriculum", {}))
     for key, val in (("levels_m", _floats(args.levels)), ("stage_episodes", args.stage_episodes),
                      ("max_steps", args.max_steps), ("teacher", args.teacher),
-                     ("teacher_levels_m", _floats(args.teacher_levels))):
+                     ("teacher_levels_m", _floats(args.teacher_levels)),
+                     ("teacher_mask", args.teacher_mask),
+                     ("teacher_schedule", args.teacher_schedule),
+                     ("teacher_agree", args.teacher_agree),
+                     ("teacher_loss", args.teacher_loss),
+                     ("teacher_weight", args.teacher_weight)):
         if val is not None:
             cur_d[key] = val
     cur = from_dict(CurriculumConfig, cur_d, "[curriculum]")
