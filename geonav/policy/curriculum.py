@@ -194,6 +194,37 @@ def _record_stage(out: Path, state_path: Path, state: dict[str, Any],
     os.replace(tmp, state_path)
 
 
+def _stage_teacher(cfg: CurriculumConfig, i: int, prev_ckpt: str | None,
+                   prev_alt: float | None, env_factory: Any) -> tuple[Any, Any]:
+    """Stage ``i``'s (KL teacher spec, previous-view spec), either or both None."""
+    from geonav.policy.teacher import PrevViewSpec, TeacherSpec
+
+    if not cfg.teacher_at(i):
+        return None, None
+    alt = float(cfg.levels_m[i])
+    if prev_ckpt is None or prev_alt is None:
+        raise ConfigError(f"stage {i} ({alt:g} m) needs a teacher, but there is no "
+                          "previous policy with a known altitude (pass init and "
+                          "first_teacher_alt_m, or teacher_levels_m without it)")
+    prev_factory = replace(env_factory, alt_m=float(prev_alt))
+    if cfg.teacher == "input":
+        return None, PrevViewSpec(prev_factory, float(prev_alt))
+    return TeacherSpec(str(prev_ckpt), prev_factory, cfg.stage_episodes,
+                       cfg.teacher_decay_fraction, cfg.teacher_weight, cfg.teacher_schedule,
+                       cfg.teacher_loss, cfg.teacher_agree, cfg.teacher_mask), None
+
+
+def _check_teacher_engine(cfg: CurriculumConfig, i: int, teacher: Any, trainer: Any) -> None:
+    """The teacher variants beyond the paper's reading run on the batched engine only."""
+    if teacher is not None and not teacher.is_default and \
+            trainer.engine_choice.engine != "batched":
+        raise ConfigError(f"curriculum stage {i} ({cfg.levels_m[i]:g} m): teacher_schedule "
+                          f"{cfg.teacher_schedule!r}, teacher_loss {cfg.teacher_loss!r}, "
+                          f"teacher_mask {cfg.teacher_mask!r} and teacher_weight "
+                          f"{cfg.teacher_weight:g} need the batched engine, but this stage "
+                          f"runs on the async one ({trainer.engine_choice.reason})")
+
+
 def _run_curriculum(env_factory: Any, init: str | None, algo: str, base_cfg: A3CConfig,
                     cfg: CurriculumConfig | None, *, out_dir: str | os.PathLike[str],
                     criterion: Any, net_cfg: NetConfig | None, callbacks: Sequence[Callback],
@@ -203,7 +234,6 @@ def _run_curriculum(env_factory: Any, init: str | None, algo: str, base_cfg: A3C
     from geonav.convergence import ConvergenceCriterion
     from geonav.policy.checkpoint import load_checkpoint
     from geonav.policy.engine import build_trainer
-    from geonav.policy.teacher import PrevViewSpec, TeacherSpec
 
     cfg = cfg if cfg is not None else CurriculumConfig()
     criterion = criterion if criterion is not None else ConvergenceCriterion()
@@ -232,21 +262,8 @@ def _run_curriculum(env_factory: Any, init: str | None, algo: str, base_cfg: A3C
         resume = str(latest) if latest.exists() else None
         if resume is None and stage_dir.exists():
             _remove_unstarted_stage(stage_dir)  # killed before its first checkpoint
-        teacher = None
-        prev_view = None
-        if cfg.teacher_at(i):
-            if prev_ckpt is None or prev_alt is None:
-                raise ConfigError(f"stage {i} ({alt:g} m) needs a teacher, but there is no "
-                                  "previous policy with a known altitude (pass init and "
-                                  "first_teacher_alt_m, or teacher_levels_m without it)")
-            prev_factory = replace(env_factory, alt_m=float(prev_alt), max_steps=cap)
-            if cfg.teacher == "input":
-                prev_view = PrevViewSpec(prev_factory, float(prev_alt))
-            else:
-                teacher = TeacherSpec(str(prev_ckpt), prev_factory, cfg.stage_episodes,
-                                      cfg.teacher_decay_fraction, cfg.teacher_weight,
-                                      cfg.teacher_schedule, cfg.teacher_loss,
-                                      cfg.teacher_agree, cfg.teacher_mask)
+        teacher, prev_view = _stage_teacher(cfg, i, prev_ckpt, prev_alt,
+                                            replace(env_factory, max_steps=cap))
         stop = ConvergenceStop(criterion)
         kwargs: dict[str, Any] = {"out_dir": stage_dir, "resume": resume,
                                   "callbacks": [stop, *callbacks], "mp_context": mp_context}
@@ -266,14 +283,7 @@ def _run_curriculum(env_factory: Any, init: str | None, algo: str, base_cfg: A3C
         trainer = build_trainer(algo, engine, factory, stage_net,
                                 replace(base_cfg, episodes=cfg.stage_episodes), batch=batch,
                                 device=device, **kwargs)
-        if teacher is not None and not teacher.is_default and \
-                trainer.engine_choice.engine != "batched":
-            raise ConfigError(f"curriculum stage {i} ({alt:g} m): teacher_schedule "
-                              f"{cfg.teacher_schedule!r}, teacher_loss {cfg.teacher_loss!r}, "
-                              f"teacher_mask {cfg.teacher_mask!r} and teacher_weight "
-                              f"{cfg.teacher_weight:g} need the batched "
-                              f"engine, but this stage runs on the async one "
-                              f"({trainer.engine_choice.reason})")
+        _check_teacher_engine(cfg, i, teacher, trainer)
         if resume is None and prev_ckpt is not None:
             _warm_start(trainer, prev_ckpt)
         if resume is not None:  # the convergence window continues over the whole stage

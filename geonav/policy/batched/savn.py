@@ -206,13 +206,20 @@ class BatchedSAVNTrainer(BatchedTrainer):
             f["t0"] = float(self.t_episode[f["slot"]])
         self.next_round()
         self.t_episode[:] = time.perf_counter()
+        stats = self.update_stats(runs, weights, kls, mask)
+        return finals, stats[0] if len(stats) == 1 else stats
+
+    def update_stats(self, runs: list[LossTerms], weights: list[torch.Tensor],
+                     kls: list[torch.Tensor], mask: torch.Tensor) -> list[dict[str, float]]:
+        """The metrics of an update, one row per run, with the teacher's columns."""
+        bf = float(self.run_batch)
         stats = [loss_stats(LossTerms(r.total / bf, r.policy / bf, r.value / bf,
                                       r.entropy / bf), int(w.sum()) // self.run_batch)
                  for r, w in zip(runs, weights, strict=True)]
         if self.teacher is not None:  # unpacked: one run
             stats[0].update({"teacher_loss": float((torch.stack(kls) * mask).sum()) / bf,
                              **self.teacher.report()})
-        return finals, stats[0] if len(stats) == 1 else stats
+        return stats
 
 
 __all__ = ["BatchedSAVNTrainer"]
