@@ -23,7 +23,10 @@ under bench/.cache/altitude). Then, per seed, a student at 15 m under each varia
 - ``kl-mask``, ``kl-mask-agree``, ``ce-mask-agree``: the teacher's distribution
   renormalised over the moves possible at the student's cell at 15 m (a cell blocked at
   15 m but free at 45 m gets probability 0), with the paper's schedule or held until
-  agreement (``kl-mask-agree80``: until 80 %, not 90 %).
+  agreement (``kl-mask-agree80``: until 80 %, not 90 %);
+- ``input``: option B, no teacher term: the network's extra input slot gets the view at
+  the same cell at 45 m (its own teacher, trained at 45 m with the slot zero-filled; as
+  everywhere in geonav, evaluation zero-fills the slot).
 
 Every ``--eval-every`` episodes the student is evaluated greedily from every start cell
 of every target at 15 m, and, in lock-step along those same episodes, the teacher is fed
@@ -66,6 +69,7 @@ VARIANTS = {  # name: (warm start, teacher options or None)
     "kl-mask-agree": (True, {"mask": "feasible", "schedule": "agree"}),
     "ce-mask-agree": (True, {"mask": "feasible", "schedule": "agree", "loss": "ce"}),
     "kl-mask-agree80": (True, {"mask": "feasible", "schedule": "agree", "agree": 0.8}),
+    "input": (True, "input"),
 }
 HIGH, LOW = 45.0, 15.0
 
@@ -213,13 +217,14 @@ class Probe(_callback_base()):  # type: ignore[misc]
 
 
 def train_teacher(cache: Path, factory: Any, net_cfg: Any, episodes: int, log: Any) -> str:
-    """The 45 m teacher of an encoder (ISAR from scratch until both rules hold), cached."""
+    """The 45 m teacher of an encoder (ISAR from scratch until both rules hold), cached
+    (with ``prev_view_input``: the slot zero-filled, the starting point of variant input)."""
     from geonav.convergence import ConvergenceCriterion
     from geonav.policy.curriculum import ConvergenceStop
     from geonav.policy.engine import build_trainer
     from geonav.policy.meta_config import ISARConfig
 
-    out = cache / f"teacher45-{net_cfg.encoder}"
+    out = cache / f"teacher45-{net_cfg.encoder}{'-pv' if net_cfg.prev_view_input else ''}"
     final = out / "checkpoints" / "final.pt"
     if final.exists():
         return str(final)
@@ -243,11 +248,15 @@ def run_student(cache: Path, factory: Any, net_cfg: Any, teacher_ckpt: str, vari
     from geonav.policy.curriculum import _warm_start
     from geonav.policy.engine import build_trainer
     from geonav.policy.meta_config import ISARConfig
-    from geonav.policy.teacher import TeacherSpec
+    from geonav.policy.teacher import PrevViewSpec, TeacherSpec
 
     warm, topts = VARIANTS[variant]
     kwargs: dict[str, Any] = {}
-    if topts is not None:
+    if topts == "input":
+        teacher_ckpt = train_teacher(cache, factory, replace(net_cfg, prev_view_input=True),
+                                     tables["teacher_episodes"], log)
+        kwargs["prev_view"] = PrevViewSpec(replace(factory, alt_m=HIGH), HIGH)
+    elif topts is not None:
         kwargs["teacher"] = TeacherSpec(teacher_ckpt, replace(factory, alt_m=HIGH), episodes,
                                         0.25, **topts)
     stage_net = load_checkpoint(teacher_ckpt).net_config if warm else net_cfg
@@ -350,7 +359,8 @@ def main(argv: list[str] | None = None) -> int:
         log(f"{enc}: teacher greedy SR at 45 m {own['sr']:.3f} (SPL {own['spl']:.3f}); "
             f"driving at 15 m on 45 m renders {driven['sr']:.3f}, masked to the moves "
             f"possible at 15 m {masked['sr']:.3f}")
-        tables = {"env15": env15, "t15": t15, "t45": t45}
+        tables = {"env15": env15, "t15": t15, "t45": t45,
+                  "teacher_episodes": args.teacher_episodes}
         runs = []
         for seed in (int(s) for s in args.seeds.split(",")):
             for v in args.variants.split(","):
