@@ -8,8 +8,9 @@ A two-altitude lab, small enough for 2 cores: ``--targets`` whole-scene tasks (o
 each, a 300 m square of the 450 m synthetic residential scene, 20 x 20 cells of 15 m, 60
 steps, 64 px, view-blind <= 0.3 and random walk <= 0.1 at both altitudes) flown at 45 m
 and 15 m on the same lattice. Per encoder, one teacher is trained at 45 m from scratch
-(ISAR, batched engine, until both convergence rules hold or ``--teacher-episodes``; cached
-under bench/.cache/altitude). Then, per seed, a student at 15 m under each variant:
+(ISAR, batched engine, until the training-SR rule holds (W = 500, 0.95 / 0.90) or
+``--teacher-episodes``; cached under bench/.cache/altitude). Then, per seed, a student at
+15 m under each variant:
 
 - ``scratch``: fresh weights, no teacher (the "standard agent");
 - ``warm``: the teacher's weights, no teacher term;
@@ -217,7 +218,7 @@ class Probe(_callback_base()):  # type: ignore[misc]
 
 
 def train_teacher(cache: Path, factory: Any, net_cfg: Any, episodes: int, log: Any) -> str:
-    """The 45 m teacher of an encoder (ISAR from scratch until both rules hold), cached
+    """The 45 m teacher of an encoder (ISAR from scratch until the training-SR rule holds), cached
     (with ``prev_view_input``: the slot zero-filled, the starting point of variant input)."""
     from geonav.convergence import ConvergenceCriterion
     from geonav.policy.curriculum import ConvergenceStop
