@@ -59,6 +59,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from geonav.policy.callbacks import Callback  # noqa: E402 (after the path above)
+
 VARIANTS = {  # name: (warm start, teacher options or None)
     "scratch": (False, None),
     "warm": (True, None),
@@ -165,13 +167,7 @@ def lockstep(actor: Any, actor_table: Any, env: Any, other: Any = None,
     return out
 
 
-def _callback_base() -> type:
-    from geonav.policy.callbacks import Callback
-
-    return Callback
-
-
-class Probe(_callback_base()):  # type: ignore[misc]
+class Probe(Callback):
     """A trainer callback: every ``every`` episodes, the student's greedy SR/SPL from every
     start at 15 m and its agreement with the teacher along those episodes; per update, the
     trainer's loss and teacher columns (averaged between evaluations)."""
