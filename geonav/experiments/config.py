@@ -141,6 +141,8 @@ class StageSpec:
         algo: "a3c", "savn" or "isar".
         episodes: episode budget of the stage.
         init: a stage whose final policy this one starts from (same seed).
+        init_alt_m: when ``init`` is a curriculum stage, start from its policy at this
+            level (e.g. 45.0: the 45 m level's final policy) instead of its last level's.
         workers: worker processes inside the unit (0 = single process).
         options: algorithm options passed through (N, K, lr, encoder, ...), and the
             trainer engine: ``engine`` ("batched", the default, or "async"), ``batch``
@@ -157,6 +159,7 @@ class StageSpec:
     algo: str = "isar"
     episodes: int = 1000
     init: str | None = None
+    init_alt_m: float | None = None
     workers: int = 1
     options: dict[str, Any] = field(default_factory=dict)
 
@@ -315,7 +318,8 @@ def parse_config(data: dict[str, Any], source: str = "") -> ExperimentConfig:
     for k, v in data.get("stages", {}).items():
         v = dict(v)
         options = {key: v.pop(key) for key in list(v) if key not in
-                   {"mode", "tasks", "algo", "episodes", "init", "workers", "options"}}
+                   {"mode", "tasks", "algo", "episodes", "init", "init_alt_m", "workers",
+                    "options"}}
         v["options"] = {**v.get("options", {}), **options}
         stages[k] = _build(StageSpec, k, v, f"[stages.{k}]")
     compare = tuple(_build(CompareSpec, c.get("name", f"compare-{i}"),
@@ -392,6 +396,8 @@ def _check(cfg: ExperimentConfig) -> None:
             raise ConfigError(f"[stages.{st.name}] init = {st.init!r} is not a stage")
         if st.episodes < 1:
             raise ConfigError(f"[stages.{st.name}] episodes must be >= 1")
+        if st.init_alt_m is not None:
+            _check_init_level(cfg, st)
         if st.options.get("augment") not in (None, False, True):
             from geonav.augment import AugmentConfig
 
@@ -411,6 +417,21 @@ def _check(cfg: ExperimentConfig) -> None:
         if missing:
             raise ConfigError(f"[[compare]] {c.name!r}: methods {missing} are not stages")
     check_noise(cfg)
+
+
+def _check_init_level(cfg: ExperimentConfig, st: StageSpec) -> None:
+    """``init_alt_m`` names a level of the curriculum stage ``init``."""
+    from geonav.policy.meta_config import CurriculumConfig
+
+    parent = cfg.stages.get(st.init) if st.init is not None else None
+    if parent is None or parent.mode != "curriculum":
+        raise ConfigError(f"[stages.{st.name}] init_alt_m needs init = a curriculum stage "
+                          f"(init = {st.init!r})")
+    levels = parent.options.get("levels_m",
+                                CurriculumConfig.__dataclass_fields__["levels_m"].default)
+    if float(st.init_alt_m) not in [float(a) for a in levels]:
+        raise ConfigError(f"[stages.{st.name}] init_alt_m = {st.init_alt_m:g} is not a level "
+                          f"of curriculum stage {parent.name!r} ({list(levels)} m)")
 
 
 def _check_options(cfg: ExperimentConfig, st: StageSpec) -> None:

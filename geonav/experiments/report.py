@@ -427,6 +427,9 @@ def _parent_sections(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
         zs_abl = _median([r["eval"]["zero_shot"].get("ablated_sr") for m in children
                           for r in record["methods"][m]["runs"] if r["eval"].get("zero_shot")])
         own_abl = _median([e.get("ablated_sr") for e in ev])
+        levels = {cfg.stages[m].init_alt_m for m in children}
+        which = (f"{levels.pop():g} m level's policy"
+                 if len(levels) == 1 and None not in levels else "final policy")
         lines += [f"### Starting stage `{p}` ({st.mode}, {st.algo}, tasks `{st.tasks}`)", "",
                   f"Final greedy SR over its own tasks' starts: "
                   f"{_f(_median([e.get('greedy_sr') for e in ev]))} (sampled "
@@ -434,7 +437,7 @@ def _parent_sections(cfg: ExperimentConfig, comp: CompareSpec, root: Path,
                   f"{_f(own_abl)}; random walk "
                   f"{_f(chance.get('random_walk_sr'), '.3f')}, best view-blind "
                   f"{_f(chance.get('blind_sr'), '.3f')}). Zero-shot greedy SR of its "
-                  f"final policy on the compared task: "
+                  f"{which} on the compared task: "
                   f"{_f(_median(zs))}" + (f" [{min(zs):.2f}-{max(zs):.2f}]" if zs else "") +
                   (f", view-ablated {zs_abl:.2f}" if zs_abl is not None else "") +
                   (f" (that task's random walk: {record['random_walk_sr']:.3f}"

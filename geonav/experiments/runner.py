@@ -555,7 +555,10 @@ def _payload(cfg: ExperimentConfig, root: Path, u: Unit, scenes: dict[str, str],
     init_ckpt = None
     if stage.init is not None:
         init_ckpt = done[Unit(stage.init, u.seed)]["checkpoint"]
-    return dict(
+        if stage.init_alt_m is not None and init_ckpt is not None:
+            init_ckpt = _level_checkpoint(init_ckpt, stage.init_alt_m)
+    extra = {} if stage.init_alt_m is None else {"init_alt_m": stage.init_alt_m}
+    return dict(**extra,
         stage=u.stage, mode=stage.mode, algo=stage.algo, episodes=stage.episodes,
         workers=stage.workers, options=dict(stage.options), seed=u.seed,
         scene=scenes[tspec.scene], tasks=tasks[stage.tasks], init_checkpoint=init_ckpt,
@@ -564,6 +567,20 @@ def _payload(cfg: ExperimentConfig, root: Path, u: Unit, scenes: dict[str, str],
             hold=cfg.convergence.hold, eval_threshold=cfg.convergence.eval_threshold),
         eval_starts=cfg.eval_starts,
     )
+
+
+def _level_checkpoint(final_ckpt: str, alt_m: float) -> str:
+    """The final policy of one level of a finished curriculum unit, from its curriculum.json
+    (the unit's folder is two above its final checkpoint)."""
+    unit = Path(final_ckpt).parent.parent
+    state = read_json(unit / "curriculum.json") or {}
+    for i, s in enumerate(state.get("stages", [])):
+        if float(s["alt_m"]) == float(alt_m):
+            path = unit / f"stage_{i}_{float(alt_m):g}m" / "checkpoints" / "final.pt"
+            if path.exists():
+                return str(path)
+    raise ConfigError(f"{unit}: the curriculum has no finished {alt_m:g} m level to start "
+                      "from (init_alt_m)")
 
 
 def _emit(cb: Callable[[UnitEvent], None] | None, ev: UnitEvent) -> None:
