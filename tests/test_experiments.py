@@ -686,3 +686,54 @@ def test_ingestion_warns_only_about_what_the_run_flies(tmp_path):
     [blur] = check_coverage(scene, low)
     assert "that 32 px views at 15 m need" in blur
     assert coverage_needs(cfg, "B", ["A_meta"]) == CoverageNeeds((), ())  # not on B
+
+
+def test_init_alt_m_starts_from_one_level_of_a_curriculum(tmp_path):
+    """``init_alt_m`` picks that level's final policy of the parent curriculum unit, and
+    is refused in one line when the parent is no curriculum or lacks the level."""
+    from geonav.experiments.runner import _payload
+    from geonav.experiments.units import Unit
+
+    base = {"scenes": {"A": {"synthetic": "residential"}},
+            "tasks": {"t": {"scene": "A", "kind": "scene"}},
+            "stages": {"cur": {"mode": "curriculum", "tasks": "t"},
+                       "pre": {"mode": "train", "tasks": "t"},
+                       "s": {"mode": "train", "tasks": "t", "init": "cur",
+                             "init_alt_m": 45.0}}}
+    cfg = parse_config(base)
+    with pytest.raises(ConfigError, match=r"init_alt_m = 30 is not a level of curriculum"):
+        parse_config({**base, "stages": {**base["stages"], "s": {
+            **base["stages"]["s"], "init_alt_m": 30.0}}})
+    with pytest.raises(ConfigError, match="init_alt_m needs init = a curriculum stage"):
+        parse_config({**base, "stages": {**base["stages"], "s": {
+            **base["stages"]["s"], "init": "pre"}}})
+    unit = tmp_path / "units" / "cur" / "seed-0"
+    levels = [(i, alt) for i, alt in enumerate((75.0, 45.0, 15.0))]
+    for i, alt in levels:
+        ck = unit / f"stage_{i}_{alt:g}m" / "checkpoints" / "final.pt"
+        ck.parent.mkdir(parents=True)
+        ck.write_bytes(b"")
+    (unit / "checkpoints").mkdir()
+    (unit / "curriculum.json").write_text(json.dumps(
+        {"stages": [{"alt_m": alt, "checkpoint": "elsewhere"} for _, alt in levels]}))
+    done = {Unit("cur", 0): {"checkpoint": str(unit / "checkpoints" / "final.pt")}}
+    p = _payload(cfg, tmp_path, Unit("s", 0), {"A": "scenes/A"}, {"t": "tasks/t.json"}, done)
+    assert p["init_checkpoint"] == str(unit / "stage_1_45m" / "checkpoints" / "final.pt")
+    assert p["init_alt_m"] == 45.0
+    (unit / "curriculum.json").write_text(json.dumps({"stages": [{"alt_m": 75.0}]}))
+    with pytest.raises(ConfigError, match="no finished 45 m level"):
+        _payload(cfg, tmp_path, Unit("s", 0), {"A": "scenes/A"}, {"t": "tasks/t.json"}, done)
+
+
+def test_fly_auto_skips_a_flight_stage_the_selected_parts_do_not_train(tmp_path, capsys):
+    from geonav.experiments.cli import _should_fly
+
+    cfg = load_config(Path(__file__).resolve().parent.parent / "configs" / "paper.toml")
+    assert cfg.flight["stage"] == "transfer_B"
+    assert _should_fly(cfg, "auto", None)
+    assert _should_fly(cfg, "auto", ["transfer"])
+    assert not _should_fly(cfg, "auto", ["curriculum-mask"])
+    assert "flight: skipped" in capsys.readouterr().out
+    assert _should_fly(cfg, "yes", ["curriculum-mask"])
+    assert not _should_fly(cfg, "no", None)
+    assert not _should_fly(replace(cfg, flight={}), "auto", None)

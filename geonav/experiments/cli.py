@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
 from geonav.cliutil import add_command_group, nonneg_int, positive_int
 
@@ -132,13 +133,27 @@ def run(args: argparse.Namespace) -> int:
             if c["median"] is not None:
                 parts.append(f"{m} {c['median']:.0f}{'+' if c['median_censored'] else ''} ep")
         print(f"  {comp['name']}: " + ", ".join(parts))
-    fly = args.fly == "yes" or (args.fly == "auto" and cfg.flight)
-    if fly:
+    if _should_fly(cfg, args.fly, args.only):
         from geonav.experiments.flight import fly_result
 
         record = fly_result(cfg, root)
         print(f"flight: {record}")
     return 1 if summary.get("failed") else 0
+
+
+def _should_fly(cfg: Any, fly: str, only: list[str] | None) -> bool:
+    """``--fly auto`` flies the [flight] stage only when this run trains it (not when
+    ``--only`` picks parts without it); ``yes`` always, ``no`` never."""
+    if fly != "auto":
+        return fly == "yes"
+    stage = (cfg.flight or {}).get("stage")
+    if not cfg.flight:
+        return False
+    if only and stage not in cfg.stages_for(only):
+        print(f"flight: skipped ([flight] flies stage {stage!r}, which --only "
+              f"{','.join(only)} does not train; --fly yes flies it anyway)")
+        return False
+    return True
 
 
 def run_sweep(args: argparse.Namespace) -> int:
