@@ -118,8 +118,10 @@ def test_curriculum_advances_on_criterion_and_budget_and_decays_the_teacher(scen
     kls = KLs()
     easy = ConvergenceCriterion(window=2, threshold=0.5, hold=0.5)  # holds within the budget
     res = run_curriculum(f, None, "isar", ISARConfig(workers=0, seed=0),
-                         CurriculumConfig(stage_episodes=8, max_steps=120), out_dir=tmp_path / "a",
-                         criterion=easy, net_cfg=tiny_net(), callbacks=[kls],
+                         CurriculumConfig(stage_episodes=8, max_steps=120,  # paper's reading
+                                          teacher_mask="none", teacher_schedule="linear"),
+                         out_dir=tmp_path / "a", criterion=easy, net_cfg=tiny_net(),
+                         callbacks=[kls],
                          engine="async")  # lambda by record order: one worker's episodes
     assert [s.alt_m for s in res.stages] == [75.0, 45.0, 15.0]
     assert all(s.converged_at is not None and s.episodes < 8 for s in res.stages)

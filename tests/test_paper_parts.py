@@ -197,11 +197,16 @@ def test_paper_part_runs_tiny(part: str, tiny: ExperimentConfig, inputs: Path,
     written = json.loads((root / "summary.json").read_text())
     # only this part's comparison, not another part's whose stages it also ran (wild-aug
     # runs all of wild's; isar-vs-savn all of isar-alpha's and savn-inner's)
-    assert [c["part"] for c in written["comparisons"]] == [part]
-    comp = next(c for c in written["comparisons"] if c["part"] == part)
-    spec = next(c for c in tiny.compare if (c.part or c.name) == part)
-    assert list(comp["methods"]) == list(spec.methods)
-    assert f"## {spec.name}" in (root / "report.md").read_text()
+    specs = [c for c in tiny.compare if (c.part or c.name) == part]
+    assert [c["part"] for c in written["comparisons"]] == [part] * len(specs)
+    for comp, spec in zip(written["comparisons"], specs, strict=True):
+        assert list(comp["methods"]) == list(spec.methods)
+        assert f"## {spec.name}" in (root / "report.md").read_text()
+        _check_methods(tiny, comp, spec)
+    _check_units(tiny, root, part, loaded_inits)
+
+
+def _check_methods(tiny: ExperimentConfig, comp: dict[str, Any], spec: Any) -> None:
     for method in spec.methods:
         rec = comp["methods"][method]
         assert len(rec["runs"]) == len(tiny.seeds), method
@@ -217,6 +222,10 @@ def test_paper_part_runs_tiny(part: str, tiny: ExperimentConfig, inputs: Path,
                 assert 0.0 <= ev["ablated_sr"] <= 1.0, method
             # budgets below 2 W: the training-SR rule cannot be met
             assert run["conv"]["censored"], method
+
+
+def _check_units(tiny: ExperimentConfig, root: Path, part: str,
+                 loaded_inits: dict[str, str]) -> None:
     for key in tiny.stages_for([part]):
         stage = tiny.stages[key]
         for seed in tiny.seeds:
@@ -227,8 +236,14 @@ def test_paper_part_runs_tiny(part: str, tiny: ExperimentConfig, inputs: Path,
             if stage.init is None:
                 assert str(unit) not in loaded_inits and "zero_shot" not in result["eval"], key
                 continue
-            # started from its parent's final checkpoint of the same seed
+            # started from its parent's final checkpoint of the same seed (or from the final
+            # checkpoint of its init_alt_m level)
             parent = read_result(root / "units" / stage.init / f"seed-{seed}")["checkpoint"]
+            if stage.init_alt_m is not None:
+                level = tiny.stages[stage.init].options.get("levels_m", (75.0, 45.0, 15.0))
+                i = [float(a) for a in level].index(stage.init_alt_m)
+                parent = str(Path(parent).parent.parent / f"stage_{i}_{stage.init_alt_m:g}m" /
+                             "checkpoints" / "final.pt")
             assert result["eval"]["zero_shot"], key
             if stage.mode == "curriculum":
                 state = json.loads((unit / "curriculum.json").read_text())

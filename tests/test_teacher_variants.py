@@ -30,18 +30,30 @@ class Updates(Callback):
     ({"teacher_weight": 0.0}, "teacher_weight must be positive"),
     ({"teacher_agree": 1.5}, r"teacher_agree must lie in \(0, 1\]"),
     ({"teacher": "input", "teacher_loss": "ce"}, "teacher = 'input' has none"),
-    ({"teacher": "none", "teacher_schedule": "agree"}, "teacher = 'none' has none"),
+    ({"teacher": "none", "teacher_weight": 2.0}, "teacher = 'none' has none"),
 ])
 def test_curriculum_config_refuses_what_it_cannot_serve(bad, match):
     with pytest.raises(ConfigError, match=match):
         CurriculumConfig(**bad)
-    assert CurriculumConfig().default_teacher_term
-    assert not CurriculumConfig(teacher_loss="ce").default_teacher_term
+
+
+def test_default_is_the_masked_held_teacher_and_the_papers_reading_stays_available():
+    """Issue 31: the restricted, held teacher won the lab by its rule, so it is the
+    default; the paper's reading is two settings away, and teacher 'none' / 'input' take
+    either value of the mask and the schedule (they have no term to shape)."""
+    cfg = CurriculumConfig()
+    assert (cfg.teacher_mask, cfg.teacher_schedule, cfg.teacher_agree) == \
+        ("feasible", "agree", 0.9)
+    assert not cfg.paper_teacher_term
+    assert CurriculumConfig(teacher_mask="none", teacher_schedule="linear").paper_teacher_term
+    for teacher in ("none", "input"):
+        CurriculumConfig(teacher=teacher)
+        CurriculumConfig(teacher=teacher, teacher_mask="none", teacher_schedule="linear")
 
 
 def test_schedules_follow_the_spec(tmp_path):
     spec = kl_teacher_spec(tiny_net("random", 32, size=16), tmp_path, budget=8)
-    assert spec.is_default and [spec.weight(e) for e in (1, 2, 3)] == [1.0, 0.5, 0.0]
+    assert spec.is_paper and [spec.weight(e) for e in (1, 2, 3)] == [1.0, 0.5, 0.0]
     five = replace(spec, weight0=5.0)
     assert [five.weight(e) for e in (1, 2, 3)] == [5.0, 2.5, 0.0]
     agree = replace(spec, schedule="agree")

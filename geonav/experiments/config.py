@@ -228,7 +228,9 @@ class ExperimentConfig:
     backend: BackendSpec = field(default_factory=BackendSpec)
 
     def parts(self) -> list[str]:
-        return [c.part or c.name for c in self.compare]
+        """The part names, in config order, each once (a part may hold several
+        comparisons)."""
+        return list(dict.fromkeys(c.part or c.name for c in self.compare))
 
     def stages_for(self, only: list[str] | None) -> list[str]:
         """Stage keys needed by the selected parts (all when ``only`` is None), parents first."""

@@ -216,13 +216,15 @@ def _stage_teacher(cfg: CurriculumConfig, i: int, prev_ckpt: str | None,
 
 def _check_teacher_engine(cfg: CurriculumConfig, i: int, teacher: Any, trainer: Any) -> None:
     """The teacher variants beyond the paper's reading run on the batched engine only."""
-    if teacher is not None and not teacher.is_default and \
+    if teacher is not None and not teacher.is_paper and \
             trainer.engine_choice.engine != "batched":
         raise ConfigError(f"curriculum stage {i} ({cfg.levels_m[i]:g} m): teacher_schedule "
                           f"{cfg.teacher_schedule!r}, teacher_loss {cfg.teacher_loss!r}, "
                           f"teacher_mask {cfg.teacher_mask!r} and teacher_weight "
                           f"{cfg.teacher_weight:g} need the batched engine, but this stage "
-                          f"runs on the async one ({trainer.engine_choice.reason})")
+                          f"runs on the async one ({trainer.engine_choice.reason}); for the "
+                          "async engine set teacher_schedule 'linear' and teacher_mask "
+                          "'none' (the paper's reading)")
 
 
 def _run_curriculum(env_factory: Any, init: str | None, algo: str, base_cfg: A3CConfig,

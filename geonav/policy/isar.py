@@ -276,7 +276,7 @@ def teacher_record(teacher_spec: Any, prev_view_spec: Any) -> dict[str, Any] | N
     if teacher_spec is not None:
         rec = {"kind": "kl", "checkpoint": str(teacher_spec.checkpoint),
                "budget": teacher_spec.budget, "fraction": teacher_spec.fraction}
-        if not teacher_spec.is_default:
+        if not teacher_spec.is_paper:
             rec.update(weight=teacher_spec.weight0, schedule=teacher_spec.schedule,
                        loss=teacher_spec.loss, agree=teacher_spec.agree,
                        mask=teacher_spec.mask)

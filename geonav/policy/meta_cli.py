@@ -261,12 +261,13 @@ def add_parsers(subparsers: Any) -> None:
     c.add_argument("--teacher-levels", default=None,
                    help="stages that get the teacher (default: all after the first)")
     c.add_argument("--teacher-mask", choices=["none", "feasible"], default=None,
-                   help="'feasible': the KL teacher renormalised over the moves possible at "
-                   "the student's cell and altitude (batched engine; docs/learning.md §15)")
+                   help="'feasible' (default): the teacher renormalised over the moves possible "
+                   "at the student's cell and altitude (batched engine; docs/learning.md "
+                   "§15); 'none': the paper's reading")
     c.add_argument("--teacher-schedule", choices=["linear", "agree"], default=None,
-                   help="lambda 1 -> 0 over the first quarter of the stage (linear, the "
-                   "paper's reading) or held until the student agrees with the teacher "
-                   "(agree; batched engine)")
+                   help="lambda held until the student agrees with the teacher, then 1 -> 0 "
+                   "over a quarter of the stage (agree, default; batched engine), or 1 -> 0 "
+                   "from the start (linear, the paper's reading)")
     c.add_argument("--teacher-agree", type=positive_float, default=None,
                    help="the agreement at which schedule 'agree' lets lambda fall (0.9)")
     c.add_argument("--teacher-loss", choices=["kl", "ce"], default=None,

@@ -208,8 +208,9 @@ class CurriculumConfig:
     only needed when the first stage is in teacher_levels_m (e.g. 300)."""
     teacher_weight: float = 1.0
     """lambda's starting value (the paper's reading: 1)."""
-    teacher_schedule: str = "linear"
-    """'linear' (the paper's reading): lambda falls from ``teacher_weight`` to 0 over the
+    teacher_schedule: str = "agree"
+    """'agree' (the default since issue 31, docs/learning.md §15) or 'linear' (the paper's
+    reading, ALGORITHMS.md (e)). 'linear': lambda falls from ``teacher_weight`` to 0 over the
     first ``teacher_decay_fraction`` of the stage budget. 'agree': lambda holds at
     ``teacher_weight`` until the student's greedy action equals the teacher's on
     ``teacher_agree`` of its last 2,048 acting steps, then falls to 0 over the same span
@@ -220,8 +221,9 @@ class CurriculumConfig:
     states (DAgger-style distillation; batched engine only)."""
     teacher_agree: float = 0.9
     """The agreement at which schedule 'agree' starts to let lambda fall."""
-    teacher_mask: str = "none"
-    """'none' (the paper's reading); 'feasible': the teacher's distribution is renormalised
+    teacher_mask: str = "feasible"
+    """'feasible' (the default since issue 31) or 'none' (the paper's reading). 'feasible':
+    the teacher's distribution is renormalised
     over the moves that are possible at the student's cell at the student's altitude (a
     move into a cell blocked there, or off the lattice, gets probability 0), so the
     higher-level policy is queried about the moves the lower level has (batched engine
@@ -250,14 +252,15 @@ class CurriculumConfig:
         if self.teacher_mask not in TEACHER_MASKS:
             raise ConfigError(f"teacher_mask must be one of {TEACHER_MASKS}, not "
                               f"{self.teacher_mask!r}")
-        if self.teacher != "kl" and not self.default_teacher_term:
-            raise ConfigError(f"teacher_schedule, teacher_loss, teacher_weight and "
-                              f"teacher_mask shape the KL teacher's term; teacher = "
-                              f"{self.teacher!r} has none")
+        if self.teacher != "kl" and (self.teacher_loss, self.teacher_weight,
+                                     self.teacher_agree) != ("kl", 1.0, 0.9):
+            raise ConfigError(f"teacher_loss, teacher_weight and teacher_agree shape the KL "
+                              f"teacher's term; teacher = {self.teacher!r} has none")
 
     @property
-    def default_teacher_term(self) -> bool:
-        """The paper's reading of the teacher's term (the async engine's only one)."""
+    def paper_teacher_term(self) -> bool:
+        """The paper's reading of the teacher's term (the async engine's only one): lambda
+        1 -> 0 from the stage's start, KL, no mask. Not the default since issue 31."""
         return (self.teacher_schedule, self.teacher_loss, self.teacher_weight,
                 self.teacher_mask) == ("linear", "kl", 1.0, "none")
 

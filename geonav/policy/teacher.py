@@ -25,6 +25,11 @@ from geonav.policy.checkpoint import check_compatible, load_checkpoint
 from geonav.policy.encoders import FrozenEncoder
 from geonav.policy.meta_config import kl_weight
 
+ASYNC_TEACHER = ("the curriculum teacher's schedule 'agree', loss 'ce', mask 'feasible' and "
+                 "weights other than 1 run on engine = 'batched' only (schedule 'agree' and "
+                 "mask 'feasible' are the defaults); on the async engine set "
+                 "teacher_schedule = 'linear' and teacher_mask = 'none' (the paper's reading)")
+
 
 @dataclass(frozen=True)
 class TeacherSpec:
@@ -56,16 +61,14 @@ class TeacherSpec:
     mask: str = "none"
 
     def build(self) -> Teacher:
-        if not self.is_default:
+        if not self.is_paper:
             from geonav.errors import ConfigError
 
-            raise ConfigError("the curriculum teacher's schedule 'agree', loss 'ce', mask "
-                              "'feasible' and weights other than 1 are implemented on "
-                              "engine = 'batched' only; this stage runs on the async engine")
+            raise ConfigError(ASYNC_TEACHER)
         return Teacher(self)
 
     @property
-    def is_default(self) -> bool:
+    def is_paper(self) -> bool:
         """The paper's reading: lambda 1 -> 0 linearly, KL, no mask."""
         return (self.schedule, self.loss, self.weight0, self.mask) == \
             ("linear", "kl", 1.0, "none")
