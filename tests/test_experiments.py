@@ -737,3 +737,30 @@ def test_fly_auto_skips_a_flight_stage_the_selected_parts_do_not_train(tmp_path,
     assert _should_fly(cfg, "yes", ["curriculum-mask"])
     assert not _should_fly(cfg, "no", None)
     assert not _should_fly(replace(cfg, flight={}), "auto", None)
+
+
+def test_init_reset_draws_the_heads_again_and_refuses_unknown_values(tmp_path):
+    """A train stage's init_reset: after the init weights load, 'critic' draws the value
+    head again, 'heads' both heads; the trunk stays the init's."""
+    import torch
+
+    from geonav.experiments.stages import _init_reset, check_stage
+    from geonav.policy.config import NetConfig
+    from geonav.policy.model import ActorCritic
+
+    torch.manual_seed(0)
+    init = ActorCritic(NetConfig(encoder="random"))
+    for which, changed in (("none", set()), ("critic", {"critic"}),
+                           ("heads", {"critic", "actor"})):
+        m = ActorCritic(NetConfig(encoder="random"))
+        m.load_state_dict(init.state_dict())
+        m.reset_heads(which)
+        diff = {k.split(".")[0] for k, v in m.state_dict().items()
+                if not torch.equal(v, init.state_dict()[k]) and k.endswith("weight")}
+        assert diff == changed, which
+    p = {"stage": "s", "mode": "train", "algo": "isar", "episodes": 10, "workers": 1,
+         "seed": 0, "options": {"init_reset": "all"}}
+    with pytest.raises(ConfigError, match=r"\[stages.s\] init_reset = 'all'"):
+        check_stage(p, 32)
+    check_stage({**p, "options": {"init_reset": "critic"}}, 32)
+    assert _init_reset(p, {}) == "none"

@@ -218,6 +218,8 @@ def check_stage(p: dict[str, Any], obs_size_px: int | None) -> None:
         raise ConfigError(f"{_where(p)} engine = {opts['engine']!r}: use 'batched' or 'async'")
     _, _, rest = _algo_cfg(dict(p, options=opts), obs_size_px)
     _engine_opts(rest)
+    if p["mode"] == "train":
+        _init_reset(p, rest)
     if p["mode"] == "meta-train":
         _meta_cfg(p, rest)
     elif p["mode"] == "curriculum":
@@ -242,6 +244,7 @@ def _train_trainer(p: dict[str, Any], env_factory: Any, callbacks: list[Any],
 
     cfg, net, rest = _algo_cfg(p)
     eng = _engine_opts(rest)
+    reset = _init_reset(p, rest)
     if rest:
         raise ConfigError(f"stage {p.get('stage')!r}: unknown {p['algo']} option(s) "
                           f"{sorted(rest)}")
@@ -250,7 +253,20 @@ def _train_trainer(p: dict[str, Any], env_factory: Any, callbacks: list[Any],
                       resume=resume, callbacks=callbacks, tensorboard=False)
     if resume is None:
         _load_init(t.model, p.get("init_checkpoint"), t.env)
+        if p.get("init_checkpoint") and reset != "none":
+            t.model.reset_heads(reset)
     return t
+
+
+def _init_reset(p: dict[str, Any], rest: dict[str, Any]) -> str:
+    """A train stage's ``init_reset`` (popped): what of its ``init`` policy is drawn again
+    before the fine-tune ('none', 'critic' or 'heads'; :meth:`ActorCritic.reset_heads`)."""
+    from geonav.policy.model import INIT_RESETS
+
+    value = rest.pop("init_reset", "none")
+    if value not in INIT_RESETS:
+        raise ConfigError(f"{_where(p)} init_reset = {value!r}: use one of {INIT_RESETS}")
+    return str(value)
 
 
 @trainer("train", "a3c", "savn", "isar", "ppo")

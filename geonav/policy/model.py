@@ -36,6 +36,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from geonav.errors import ConfigError
 from geonav.policy.config import NetConfig
 from geonav.policy.encoders import SmallCNN, feature_dim
 
@@ -60,6 +61,11 @@ def _xavier_(m: nn.Module) -> None:
             m.weight.uniform_(-bound, bound)
             if m.bias is not None:
                 m.bias.zero_()
+
+
+INIT_RESETS = ("none", "critic", "heads")
+"""What a fine-tune draws again after loading its starting weights (:meth:`ActorCritic.
+reset_heads`)."""
 
 
 class ActorCritic(nn.Module):
@@ -110,14 +116,26 @@ class ActorCritic(nn.Module):
             with torch.no_grad():
                 self.lstm.bias_ih.zero_()
                 self.lstm.bias_hh.zero_()
-        actor_std = self.cfg.actor_init_std
-        if actor_std is None:
-            actor_std = 0.01 if self.cfg.init == "savn" else 1.0
-        norm_col_init(self.actor.weight, actor_std)
+        self.reset_heads("heads")
+
+    def reset_heads(self, which: str) -> None:
+        """Draw the output layers again, as :meth:`reset_parameters` does (global RNG), for a
+        fine-tune whose starting policy was trained on other returns: 'critic' (the value
+        head) or 'heads' (the value and policy heads); 'none' keeps them."""
+        if which not in INIT_RESETS:
+            raise ConfigError(f"init_reset must be one of {INIT_RESETS}, not {which!r}")
+        if which == "none":
+            return
+        if which == "heads":  # the actor first: reset_parameters' order of draws
+            actor_std = self.cfg.actor_init_std
+            if actor_std is None:
+                actor_std = 0.01 if self.cfg.init == "savn" else 1.0
+            norm_col_init(self.actor.weight, actor_std)
         norm_col_init(self.critic.weight, 1.0)
         with torch.no_grad():
-            self.actor.bias.zero_()
             self.critic.bias.zero_()
+            if which == "heads":
+                self.actor.bias.zero_()
 
     @property
     def n_view_slots(self) -> int:
