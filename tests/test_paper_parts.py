@@ -78,6 +78,10 @@ def shrink(data: dict[str, Any]) -> dict[str, Any]:
             task["max_random_walk"] = TINY_RANDOM_WALK
         if task.get("max_blind") is not None:
             task["max_blind"] = TINY_BLIND
+            if task.get("kind") == "scene":
+                # one centred region, no other to try: 5 x 5 cells give its target start
+                # cells on every side beyond the random walk's reach
+                task["size_m"] = 75.0
         if task.get("kind", "meta") == "meta":
             task["count"] = min(int(task.get("count", 1)), 2)
     for stage in d["stages"].values():
