@@ -111,8 +111,10 @@ def test_few_landmarks_above_75_m(seed: int) -> None:
 
 def test_kinds_differ_in_colour(scenes: dict[str, SynthImage]) -> None:
     means = {kind: im.rgb.reshape(-1, 3).mean(axis=0) for kind, im in scenes.items()}
-    for a in KINDS:
-        for b in KINDS:
+    from geonav.tiles.synth import MIXED_BANDS  # the base kinds (mixed is made of them)
+
+    for a in MIXED_BANDS:
+        for b in MIXED_BANDS:
             if a < b:
                 assert np.abs(means[a] - means[b]).max() > 4.0, (a, b, means[a], means[b])
 
@@ -188,3 +190,18 @@ def test_bad_arguments_raise_config_error(kwargs: dict, match: str) -> None:
 def test_coarsest_gsd_works() -> None:
     im = synthesize("campus", 500.0, 5.0, seed=2)
     assert im.rgb.shape == (100, 100, 3)
+
+
+def test_mixed_scene_is_the_three_kinds_in_bands(scenes: dict[str, SynthImage]) -> None:
+    """Each third of a mixed scene, west to east, is that band of the whole scene of its
+    kind with the same size, GSD and seed, pixels and heights alike."""
+    from geonav.tiles.synth import MIXED_BANDS
+
+    mixed = scenes["mixed"]
+    cuts = np.linspace(0, mixed.rgb.shape[1], len(MIXED_BANDS) + 1).round().astype(int)
+    for kind, a, b in zip(MIXED_BANDS, cuts[:-1], cuts[1:], strict=True):
+        np.testing.assert_array_equal(mixed.rgb[:, a:b], scenes[kind].rgb[:, a:b])
+        np.testing.assert_array_equal(mixed.height_m[:, a:b], scenes[kind].height_m[:, a:b])
+    fractions: list[float] = []
+    synthesize("mixed", 120.0, 1.0, seed=1, progress=fractions.append)
+    assert fractions == sorted(fractions) and fractions[-1] == 1.0

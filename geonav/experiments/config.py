@@ -67,7 +67,7 @@ class SceneSpec:
 
     Attributes:
         name: the key in the config.
-        synthetic: "residential", "campus" or "wild" (or None with ``path``).
+        synthetic: "residential", "campus", "wild" or "mixed" (or None with ``path``).
         path: an existing scene package folder.
         size_m: synthetic scene side in metres.
         gsd_m: synthetic scene GSD in m/px.
@@ -377,9 +377,11 @@ def _check(cfg: ExperimentConfig) -> None:
     for s in cfg.scenes.values():
         if (s.synthetic is None) == (s.path is None):
             raise ConfigError(f"[scenes.{s.name}] needs exactly one of synthetic or path")
-        if s.synthetic and s.synthetic not in ("residential", "campus", "wild"):
-            raise ConfigError(f"[scenes.{s.name}] synthetic = {s.synthetic!r}: use residential, "
-                              "campus or wild")
+        from geonav.tiles.synth import KINDS
+
+        if s.synthetic and s.synthetic not in KINDS:
+            raise ConfigError(f"[scenes.{s.name}] synthetic = {s.synthetic!r}: use one of "
+                              f"{', '.join(KINDS)}")
     for t in cfg.tasks.values():
         if t.scene not in cfg.scenes:
             raise ConfigError(f"[tasks.{t.name}] scene = {t.scene!r} is not among the scenes "

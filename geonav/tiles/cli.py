@@ -57,7 +57,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(handler=run_ingest)
 
     p = tsub.add_parser("synth", help="synthesise a scene (GeoTIFF in EPSG:3857 + DSM), ingest it")
-    p.add_argument("--kind", default="residential", choices=["residential", "campus", "wild"])
+    p.add_argument("--kind", default="residential", choices=["residential", "campus", "wild",
+                                                                  "mixed"])
     p.add_argument("--name", help="scene name (default: the kind)")
     p.add_argument("--out", required=True, help="scene package folder to write")
     p.add_argument("--size", type=positive_float, default=1200.0,

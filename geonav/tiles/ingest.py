@@ -256,6 +256,7 @@ SYNTH_ORIGINS: dict[str, LonLat] = {
     "residential": LonLat(4.4777, 51.9244, 2.0),
     "campus": LonLat(-84.3963, 33.7756, 290.0),
     "wild": LonLat(8.2275, 46.8182, 540.0),
+    "mixed": LonLat(4.4777, 51.9244, 2.0),  # the residential band's place
 }
 
 
@@ -280,7 +281,8 @@ def ingest_synthetic(
     :func:`ingest` exactly like a user's files.
 
     Args:
-        kind: "residential" (scene A), "campus" (scene B) or "wild".
+        kind: "residential" (scene A), "campus" (scene B), "wild" or "mixed" (the three
+            in bands).
         out: the package folder.
         name: scene name (default: the kind).
         size_m: side of the square scene in metres.

@@ -10,6 +10,10 @@ Three kinds stand in for real imagery so the whole toolkit runs offline:
   fields with a running track, tree-lined roads and a few towers.
 * ``wild``: forest, agricultural fields with row textures, a meandering river
   with banks, dirt tracks, hedgerows, scattered trees and maybe a farmstead.
+* ``mixed``: the three side by side, in north-south bands of a third of the scene
+  each (west to east: residential, campus, wild), each band cut from a whole scene
+  of its kind with the same seed; for meta-training on several kinds of place in
+  one task set.
 
 Frames and units: the image is north-up, row 0 is the north edge and column 0
 the west edge. Layout code works in scene metres, ``x`` east from the west
@@ -57,7 +61,7 @@ from geonav.tiles.synth.wild import _wild
 
 __all__ = ["KINDS", "SynthImage", "synthesize"]
 
-KINDS: tuple[str, ...] = ("residential", "campus", "wild")
+KINDS: tuple[str, ...] = ("residential", "campus", "wild", "mixed")
 """Kinds of synthetic scene :func:`synthesize` can make."""
 
 
@@ -123,6 +127,8 @@ def synthesize(
         raise ConfigError(f"seed={seed!r} must be a non-negative integer")
 
     report = progress if progress is not None else (lambda fraction: None)
+    if kind == "mixed":
+        return _mixed(size_m, gsd_m, int(seed), report)
     report(0.0)
     rng = np.random.default_rng([int(seed), _KIND_SALT[kind]])
     canvas = _Canvas(side_px, gsd_m, rng)
@@ -138,3 +144,29 @@ def synthesize(
     return SynthImage(
         rgb=rgb, height_m=canvas.height, gsd_m=float(gsd_m), kind=kind, seed=int(seed)
     )
+
+
+MIXED_BANDS: tuple[str, ...] = ("residential", "campus", "wild")
+"""The kinds of a ``mixed`` scene's bands, west to east."""
+
+
+def _mixed(size_m: float, gsd_m: float, seed: int, report: Callable[[float], None]
+           ) -> SynthImage:
+    """A ``mixed`` scene: column band ``i`` of thirds taken from the whole scene of kind
+    ``MIXED_BANDS[i]`` (same size, GSD and seed), so each band is what that kind's scene
+    holds there; the seams are straight cuts."""
+    n = len(MIXED_BANDS)
+    parts = []
+    for i, kind in enumerate(MIXED_BANDS):
+        parts.append(synthesize(kind, size_m, gsd_m, seed,
+                                lambda f, i=i: report((i + f) / n)))
+    side = parts[0].rgb.shape[1]
+    cuts = np.linspace(0, side, n + 1).round().astype(int)
+    rgb = np.empty_like(parts[0].rgb)
+    height = np.empty_like(parts[0].height_m)
+    for part, a, b in zip(parts, cuts[:-1], cuts[1:], strict=True):
+        rgb[:, a:b] = part.rgb[:, a:b]
+        height[:, a:b] = part.height_m[:, a:b]
+    report(1.0)
+    return SynthImage(rgb=rgb, height_m=height, gsd_m=float(gsd_m), kind="mixed",
+                      seed=int(seed))
