@@ -764,3 +764,7 @@ def test_init_reset_draws_the_heads_again_and_refuses_unknown_values(tmp_path):
         check_stage(p, 32)
     check_stage({**p, "options": {"init_reset": "critic"}}, 32)
     assert _init_reset(p, {}) == "none"
+    base = {"scenes": {"A": {"synthetic": "residential"}}, "tasks": {"t": {"scene": "A"}},
+            "stages": {"s": {"mode": "train", "tasks": "t", "init_reset": "heads"}}}
+    with pytest.raises(ConfigError, match=r"\[stages.s\] init_reset = 'heads' .* no init"):
+        parse_config(base)

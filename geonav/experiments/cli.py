@@ -146,9 +146,9 @@ def _should_fly(cfg: Any, fly: str, only: list[str] | None) -> bool:
     ``--only`` picks parts without it); ``yes`` always, ``no`` never."""
     if fly != "auto":
         return fly == "yes"
-    stage = (cfg.flight or {}).get("stage")
     if not cfg.flight:
         return False
+    stage = cfg.flight.get("stage")
     if only and stage not in cfg.stages_for(only):
         print(f"flight: skipped ([flight] flies stage {stage!r}, which --only "
               f"{','.join(only)} does not train; --fly yes flies it anyway)")

@@ -374,11 +374,11 @@ def _check(cfg: ExperimentConfig) -> None:
     if not cfg.stages:
         raise ConfigError(f"{cfg.source or 'the experiment'} defines no [stages.NAME] table: "
                           "nothing to run; see configs/quick.toml for a complete experiment")
+    from geonav.tiles.synth import KINDS
+
     for s in cfg.scenes.values():
         if (s.synthetic is None) == (s.path is None):
             raise ConfigError(f"[scenes.{s.name}] needs exactly one of synthetic or path")
-        from geonav.tiles.synth import KINDS
-
         if s.synthetic and s.synthetic not in KINDS:
             raise ConfigError(f"[scenes.{s.name}] synthetic = {s.synthetic!r}: use one of "
                               f"{', '.join(KINDS)}")
@@ -402,6 +402,10 @@ def _check(cfg: ExperimentConfig) -> None:
             raise ConfigError(f"[stages.{st.name}] episodes must be >= 1")
         if st.init_alt_m is not None:
             _check_init_level(cfg, st)
+        if st.options.get("init_reset", "none") != "none" and st.init is None:
+            raise ConfigError(f"[stages.{st.name}] init_reset = "
+                              f"{st.options['init_reset']!r} draws heads of the policy it "
+                              "starts from, but the stage has no init")
         if st.options.get("augment") not in (None, False, True):
             from geonav.augment import AugmentConfig
 
