@@ -179,7 +179,35 @@ def check_fields(cls: type, values: Mapping[str, Any], where: str = "",
                           f"{where + ': ' if where else ''}unknown key(s) {unknown}; "
                           f"known: {sorted(types_)}")
     prefix = f"{where} " if where else ""
-    return {k: coerce(types_[k], v, f"{prefix}{k}") for k, v in values.items()}
+    defaults = _dataclass_defaults(cls)
+    return {k: coerce(types_[k], _onto_default(defaults.get(k), v), f"{prefix}{k}")
+            for k, v in values.items()}
+
+
+@functools.cache
+def _dataclass_defaults(cls: type) -> dict[str, Any]:
+    """Field name -> default value, for the fields whose default is a config dataclass
+    instance (e.g. PPOConfig's ``loss = LossConfig(tau=0.95)``)."""
+    out: dict[str, Any] = {}
+    for f in dataclasses.fields(cls):
+        value = f.default if f.default is not dataclasses.MISSING else (
+            f.default_factory() if f.default_factory is not dataclasses.MISSING else None)
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):
+            out[f.name] = value
+    return out
+
+
+def _onto_default(default: Any, value: Any) -> Any:
+    """A partial table for a nested config, filled in from the field's own default rather
+    than from the nested class's: ``[ppo.loss] beta = 0`` keeps PPO's GAE lambda 0.95
+    (LossConfig's class default is 1.0). Nested tables merge the same way, level by level."""
+    if default is None or not isinstance(value, Mapping):
+        return value
+    merged: dict[str, Any] = {f.name: getattr(default, f.name)
+                              for f in dataclasses.fields(default)}
+    for k, v in value.items():
+        merged[k] = _onto_default(merged.get(k), v) if k in merged else v
+    return merged
 
 
 def build(cls: type, values: Mapping[str, Any], where: str = "",

@@ -12,7 +12,6 @@ from batched_helpers import (
     random_sr,
 )
 
-from geonav.errors import ConfigError
 from geonav.policy.batched.isar import BatchedISARTrainer
 from geonav.policy.isar import ISARTrainer
 from geonav.policy.meta_config import ISARConfig
@@ -34,12 +33,6 @@ def test_b1_first_window_equals_reference_worker(second_order, encoder):
     assert worker.events[:3] == [("inner", 2), ("inner", 4), ("adapt", 6, 3)]
     names = [n for n, _ in ref.model.named_parameters()]
     assert_grads_close(names, ref_grads, got, 1e-5, 1e-4)
-
-
-def test_refuses_what_it_does_not_implement():
-    factory = tiny_env_factory()
-    with pytest.raises(ConfigError, match="frozen encoder"):
-        BatchedISARTrainer(factory, tiny_net("cnn"), ISARConfig(episodes=1, base_loss="ppo"))
 
 
 def episode_and_updates_grads(ref, bat, updates):

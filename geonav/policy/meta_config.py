@@ -18,8 +18,7 @@ from geonav.policy.config import A3CConfig, LossConfig, from_dict, to_dict
 GRADIENT_PATHS = ("recompute", "per-step")
 BASE_LOSSES = ("a3c", "ppo")
 PPO_BASE_ASYNC = ("ISAR with base_loss = 'ppo' runs on the batched engine only (engine = "
-                  "'batched', a frozen encoder); the async engine implements base_loss = "
-                  "'a3c'")
+                  "'batched'); the async engine implements base_loss = 'a3c'")
 PPO_BASE_META = ("meta-training with ISAR's base_loss = 'ppo' is not implemented (the PPO "
                  "base exists for `train` on the batched engine); use base_loss = 'a3c'")
 

@@ -40,7 +40,6 @@ from typing import Any
 import numpy as np
 import torch
 
-from geonav.errors import ConfigError
 from geonav.policy.batched.core import Adapted, Recorder, factored_step, sample_actions
 from geonav.policy.batched.teacher import BatchedTeacher
 from geonav.policy.batched.trainer import BatchedTrainer, loss_stats
@@ -69,10 +68,6 @@ class BatchedISARTrainer(BatchedTrainer):
         self.prev_view_spec = prev_view
         cfg = cfg if cfg is not None else ISARConfig()
         super().__init__(env_factory, net_cfg, cfg, **kwargs)
-        if cfg.base_loss == "ppo" and self.frozen is None:
-            raise ConfigError("ISAR with base_loss = 'ppo' needs a frozen encoder (encoder = "
-                              "'random', 'resnet18' or 'corr'); the trainable CNN runs the "
-                              "A3C base only")
 
     def resolved_config(self) -> dict[str, Any]:
         d = super().resolved_config()
@@ -213,11 +208,15 @@ class BatchedISARTrainer(BatchedTrainer):
         e = self.net_cfg.embed_dim
         rec = Recorder(gram=self.gram)
         logits, values = [], []
-        assert self.table is not None
+        tgt_f: torch.Tensor | None = None
         for vi, ti, start, done in zip(d.views, d.targets, d.starts, d.done_at, strict=True):
-            logit, value, state = factored_step(params, e, self.table[vi], self.table[ti],
-                                                state, adapted, rec, start, vi, ti,
-                                                self.prev_features(vi))
+            # as the acting pass: the trainable CNN encodes each slot's views under its own
+            # adapted weights, its target once per segment and at a new episode
+            tgt_f = self.slot_targets(params, adapted, ti, rec, tgt_f, start)
+            logit, value, state = factored_step(params, e, self.slot_views(params, adapted, vi,
+                                                                           rec),
+                                                tgt_f, state, adapted, rec, start, vi, ti,
+                                                self.slot_prev(params, adapted, vi, rec))
             logits.append(logit)
             values.append(value)
             if done is not None:

@@ -290,15 +290,18 @@ class BatchedTrainer(A3CTrainer):
         return self.slot_views(params, adapted, rows, rec, prev=True)
 
     def slot_targets(self, params: Params, adapted: Adapted | None, target_idx: torch.Tensor,
-                     rec: Recorder | None, last: torch.Tensor | None) -> torch.Tensor:
+                     rec: Recorder | None, last: torch.Tensor | None,
+                     fresh: torch.Tensor | None = None) -> torch.Tensor:
         """(B, F) target features as :meth:`slot_views`. With the trainable CNN each slot's
         target is encoded once per weights: ``last`` (this step's weights, or None) is
-        kept for the slots that do not begin a new episode at this step."""
+        kept for the slots that do not begin a new episode at this step (``fresh``,
+        default the slots' current flags; a replay passes the flags it kept)."""
         if self.table is not None or last is None:
             return self.slot_views(params, adapted, target_idx, rec)
-        if not bool(self.fresh.any()):
+        fresh = self.fresh if fresh is None else fresh
+        if not bool(fresh.any()):
             return last
-        idx = self.fresh.nonzero()[:, 0]
+        idx = fresh.nonzero()[:, 0]
         return last.index_put((idx,), self.slot_views(params, adapted, target_idx[idx], rec,
                                                       idx))
 
