@@ -10,7 +10,7 @@ current view swapped for another cell's), and env steps per CPU-second of traini
 
     python bench/bench_learning.py                                   # the view-needing tasks
     python bench/bench_learning.py --task view45-campus --methods sb3-ppo,geonav-ppo \
-        --encoders cnn,corr --seeds 0,1,2
+        --encoders cnn-ff,cnn,corr --seeds 0,1,2
     python bench/bench_learning.py --task quick-b                    # the old corner task
 
 Tasks (``--task``, comma-separated; ``--scene``/``--tasks`` take any other):
@@ -285,7 +285,13 @@ def run_geonav(algo: str, scene: str, tasks: str, steps: int, seed: int,
     else:
         opts.update(_kv(args.algo_opts, {}))
         cfg = base_config(algo, opts)
-    net = from_dict(NetConfig, {"obs_size_px": n_px, "encoder": encoder, **_kv(args.net, {})})
+    base, _, kind = encoder.partition("-")  # 'cnn-ff': the trainable CNN, feed-forward
+    if kind not in ("", "ff"):
+        raise SystemExit(f"bench_learning: unknown encoder {encoder!r} (ENCODER or "
+                         "ENCODER-ff)")
+    net = from_dict(NetConfig, {"obs_size_px": n_px, "encoder": base,
+                                **({"recurrent": False} if kind == "ff" else {}),
+                                **_kv(args.net, {})})
     if engine == "batched":
         from geonav.policy.engine import build_trainer
 
@@ -419,9 +425,11 @@ def main() -> None:
                     help="sb3-ppo (Stable-Baselines3), a3c, isar, savn (the async reference "
                     "trainers), geonav-ppo (geonav's PPO, batched engine), a3c-batched, "
                     "isar-batched (batched engine)")
-    ap.add_argument("--encoders", default="cnn,corr",
-                    help="geonav methods' encoders: cnn (trainable), corr, random")
-    ap.add_argument("--steps", type=int, default=40960, help="env steps per run")
+    ap.add_argument("--encoders", default="cnn-ff,cnn,corr",
+                    help="geonav methods' encoders: cnn (trainable), corr, random; with "
+                    "'-ff' the network is feed-forward (no LSTM, no previous-action "
+                    "input: NetConfig.recurrent = false), e.g. cnn-ff")
+    ap.add_argument("--steps", type=int, default=65536, help="env steps per run")
     ap.add_argument("--batch", default="16", help="comma-separated per-run batches (slots "
                     "of one run) of the batched-engine methods, e.g. 16,64")
     ap.add_argument("--seeds", default="0,1,2")

@@ -187,7 +187,7 @@ def check_fields(cls: type, values: Mapping[str, Any], where: str = "",
 @functools.cache
 def _dataclass_defaults(cls: type) -> dict[str, Any]:
     """Field name -> default value, for the fields whose default is a config dataclass
-    instance (e.g. PPOConfig's ``loss = LossConfig(tau=0.95)``)."""
+    instance (e.g. PPOConfig's ``loss``)."""
     out: dict[str, Any] = {}
     for f in dataclasses.fields(cls):
         value = f.default if f.default is not dataclasses.MISSING else (

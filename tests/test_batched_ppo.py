@@ -3,10 +3,12 @@ feed-forward network (NetConfig.recurrent=False) with single-step minibatches li
 
 from dataclasses import replace
 
+import numpy as np
 import pytest
 import torch
 from batched_helpers import greedy_sr, random_sr
 
+from geonav.errors import ConfigError
 from geonav.policy.batched.ppo import BatchedPPOTrainer, PPOConfig
 from geonav.policy.testing import tiny_env_factory, tiny_net
 
@@ -84,6 +86,43 @@ def test_feed_forward_flat_minibatches_match_acting(encoder):
     torch.testing.assert_close(fadv[0, cols], advantages[step, s])
 
 
+@pytest.mark.parametrize("encoder", ["random", "cnn"])
+def test_sequence_chunks_match_acting(encoder):
+    """PPOConfig.seq_len: the recurrent rollout cut into chunks of L steps, each started
+    from the state it was acted from (across episode ends inside and between chunks),
+    recomputes the acting log-probabilities and values, chunk by chunk; an update runs."""
+    from geonav.policy.batched.ppo import chunk_steps
+
+    px = 20 if encoder == "cnn" else 32
+    t = BatchedPPOTrainer(tiny_env_factory(max_steps=5, obs_size_px=px),
+                          tiny_net(encoder, px, size=16),
+                          PPOConfig(episodes=10, t_max=12, seq_len=4), batch=6,
+                          tensorboard=False)
+    t._setup()
+    t.collect(7, keep_policy=True)  # slots mid-episode with non-zero states
+    ro, finals = t.collect(12, keep_policy=True, keep_states=True)
+    assert finals and ro.starts[1:].any()
+    returns, advantages = t.advantages(ro, ro.values)
+    ch, cret, cadv = chunk_steps(ro, returns, advantages, 4)
+    assert ch.view_idx.shape == (4, 18) and cret.shape == cadv.shape == (4, 18)
+    cols = torch.tensor([0, 4, 8, 17])  # column s * 3 + j: slot s's steps 4j .. 4j + 3
+    s, j = cols // 3, cols % 3
+    logits, values = t.recompute(ch, cols)
+    logp = torch.log_softmax(logits, -1).gather(-1, ch.actions[:, cols, None])[..., 0]
+    for k in range(len(cols)):
+        steps = slice(4 * int(j[k]), 4 * int(j[k]) + 4)
+        torch.testing.assert_close(logp[:, k], ro.logprobs[steps, s[k]], atol=1e-5, rtol=0)
+        torch.testing.assert_close(values[:, k], ro.values[steps, s[k]], atol=1e-5, rtol=0)
+        torch.testing.assert_close(cadv[:, cols[k]], advantages[steps, s[k]])
+    assert int(j[1]) == 1 and bool(ro.step_states[0][4, 1].abs().sum() > 0)  # a carried state
+    before = [p.detach().clone() for p in t.params_list]
+    t.update()
+    assert any(float((p.detach() - q).abs().max()) > 0 for p, q in zip(t.params_list, before,
+                                                               strict=True))
+    with pytest.raises(ConfigError, match="seq_len must be 0 or a divisor"):
+        PPOConfig(t_max=12, seq_len=5)
+
+
 def test_feed_forward_learns_tiny_task():
     """The feed-forward network learns the tiny task with single-step minibatches."""
     factory = tiny_env_factory(cells=4, max_steps=7)
@@ -124,3 +163,31 @@ def test_critic_warmup_moves_only_the_critic_head():
     assert not torch.equal(t.model.actor.weight, before["actor.weight"])
     with pytest.raises(Exception, match="critic_warmup must be >= 0"):
         PPOConfig(critic_warmup=-1)
+
+
+def test_default_bootstraps_at_truncation():
+    """PPO's default (SB3's handling of timeouts): an episode cut by the step cap is
+    bootstrapped with V of its last observation, a reached target with 0. The same rollout
+    under ``bootstrap_on_truncation = false`` differs exactly at the truncated episodes'
+    last steps, by gamma * V."""
+    factory = tiny_env_factory(cells=4, max_steps=4)
+    net = tiny_net("random", 32, size=16)
+    cfg = PPOConfig(episodes=10, seed=1)
+    assert cfg.loss.bootstrap_on_truncation and cfg.loss.tau == 0.95
+    out = {}
+    for on in (True, False):
+        t = BatchedPPOTrainer(factory, net, replace(cfg, loss=replace(
+            cfg.loss, bootstrap_on_truncation=on)), batch=8, tensorboard=False)
+        t._setup()
+        ro, _ = t.collect(12, keep_policy=True)
+        out[on] = ro, t.advantages(ro, ro.values)[0]
+    (ro, r_on), (ro_off, r_off) = out[True], out[False]
+    torch.testing.assert_close(ro.values, ro_off.values)  # the same acting
+    cut = ro.ends & (ro.rewards < 1.0)  # ended without reaching the target
+    reached = ro.ends & (ro.rewards > 1.0)
+    assert cut.any() and reached.any()
+    assert ro_off.end_values is None and ro.end_values is not None
+    assert (ro.end_values[~cut] == 0).all() and (ro.end_values[cut] != 0).all()
+    diff = (r_on - r_off).numpy()
+    np.testing.assert_allclose(diff[cut], cfg.loss.gamma * ro.end_values[cut], atol=1e-5)
+    assert np.abs(diff[reached]).max() < 1e-6

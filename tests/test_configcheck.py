@@ -121,7 +121,7 @@ def test_a_partial_nested_table_keeps_the_parents_default():
     from geonav.policy.config import A3CConfig, LossConfig, from_dict
 
     ppo = from_dict(PPOConfig, {"loss": {"beta": 0.0}})
-    assert ppo.loss == LossConfig(tau=0.95, beta=0.0)
+    assert ppo.loss == LossConfig(tau=0.95, beta=0.0, bootstrap_on_truncation=True)
     assert from_dict(A3CConfig, {"loss": {"beta": 0.0}}).loss == LossConfig(beta=0.0)
     full = {"gamma": 0.9, "tau": 0.5, "beta": 0.1, "value_coef": 1.0,
             "bootstrap_on_truncation": True}

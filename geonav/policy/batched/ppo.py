@@ -48,6 +48,12 @@ class PPOConfig(A3CConfig):
     """Minibatches per pass: groups of whole slot sequences (at most the batch)."""
     clip_coef: float = 0.2
     """epsilon of the clipped surrogate."""
+    seq_len: int = 0
+    """Recurrent network: the length of the sequences PPO's minibatches are drawn from. 0:
+    each slot's whole rollout (``t_max`` steps); L (a divisor of ``t_max``): the rollout
+    cut into chunks of L steps, each recomputed from the recurrent state it was acted from,
+    and minibatches drawn over all chunks of all slots (more, less correlated sequences
+    per minibatch). The feed-forward network always draws single steps."""
     normalize_advantages: bool = True
     """Standardise the advantages of each minibatch."""
     critic_warmup: int = 0
@@ -56,14 +62,22 @@ class PPOConfig(A3CConfig):
     stays as it is. Meant for fine-tuning a policy whose critic was trained on other tasks
     (a meta-policy's value loss starts 10-50x a converged one's, and its first updates
     undo the policy: docs/learning.md §14). 0: none."""
-    loss: LossConfig = LossConfig(tau=0.95)
-    """gamma, GAE lambda (tau), entropy weight (beta), value_coef."""
+    loss: LossConfig = LossConfig(tau=0.95, bootstrap_on_truncation=True)
+    """gamma, GAE lambda (tau), entropy weight (beta), value_coef, and the bootstrap at a
+    time-limit truncation: V(s) of the last observation, as SB3 does, not 0 as at a
+    terminal state (the default since issue 30: without it a critic that cannot see the
+    step count is asked for both values at the same view, and PPO needed up to 2.5x the
+    env steps; docs/learning.md §14). ``{bootstrap_on_truncation = false}`` gives the
+    earlier behaviour."""
 
     def __post_init__(self) -> None:
         super().__post_init__()
         if self.epochs < 1 or self.minibatches < 1:
             raise ConfigError(f"epochs and minibatches must be >= 1, got {self.epochs}, "
                               f"{self.minibatches}")
+        if self.seq_len < 0 or (self.seq_len and self.t_max % self.seq_len):
+            raise ConfigError(f"seq_len must be 0 or a divisor of t_max ({self.t_max}), got "
+                              f"{self.seq_len}")
         if self.critic_warmup < 0:
             raise ConfigError(f"critic_warmup must be >= 0, got {self.critic_warmup}")
         if not 0.0 < self.clip_coef < 1.0:
@@ -124,15 +138,20 @@ class BatchedPPOTrainer(BatchedTrainer):
 
     def update(self) -> tuple[list[dict[str, Any]], Any]:
         cfg, b = self.cfg, self.run_batch
-        ro, finals = self.collect(cfg.t_max, keep_policy=True)
+        single = len(self.run_slices()) == 1
+        chunks = self.net_cfg.recurrent and single and 0 < cfg.seq_len < cfg.t_max
+        ro, finals = self.collect(cfg.t_max, keep_policy=True, keep_states=chunks)
         assert ro.values is not None
         returns, advantages = self.advantages(ro, ro.values)
         if self.warmup_done < cfg.critic_warmup:
             self.warmup_done += 1
             return finals, self.critic_update(ro, returns)
-        if not self.net_cfg.recurrent and len(self.run_slices()) == 1:
+        if not self.net_cfg.recurrent and single:
             # a feed-forward policy needs no sequences: minibatches of single steps
             ro, returns, advantages = flat_steps(ro, returns, advantages)
+            b = ro.view_idx.shape[1]
+        elif chunks:
+            ro, returns, advantages = chunk_steps(ro, returns, advantages, cfg.seq_len)
             b = ro.view_idx.shape[1]
         n_mb = min(cfg.minibatches, b)
         outs: list[dict[str, torch.Tensor]] = []
@@ -192,4 +211,28 @@ def flat_steps(ro: RolloutBatch, returns: torch.Tensor, advantages: torch.Tensor
     return out, flat(returns), flat(advantages)
 
 
-__all__ = ["PPOConfig", "BatchedPPOTrainer", "flat_steps"]
+def chunk_steps(ro: RolloutBatch, returns: torch.Tensor, advantages: torch.Tensor,
+                seq_len: int) -> tuple[RolloutBatch, torch.Tensor, torch.Tensor]:
+    """A rollout of T steps of B slots as T / L chunks of L = ``seq_len`` steps per slot:
+    L steps of B * T / L columns (column s * T / L + j is slot s's chunk j), each starting
+    from the recurrent state chunk j's first step was acted from (``ro.step_states``), so
+    the recompute gives the acting logits and values; PPO then draws its minibatches over
+    all chunks (the recurrent counterpart of :func:`flat_steps`)."""
+    from dataclasses import replace
+
+    assert ro.step_states is not None and ro.logprobs is not None
+    T, B = ro.view_idx.shape
+    n = T // seq_len
+
+    def chunk(x: torch.Tensor) -> torch.Tensor:  # (T, B) -> (L, B * n)
+        return x.reshape(n, seq_len, B).permute(1, 2, 0).reshape(seq_len, B * n)
+
+    first = tuple(x[::seq_len].transpose(0, 1).reshape(B * n, *x.shape[2:])
+                  for x in ro.step_states)  # (n, B, ...) -> (B * n, ...)
+    out = replace(ro, start_state=first, view_idx=chunk(ro.view_idx),  # type: ignore[arg-type]
+                  target_idx=chunk(ro.target_idx), actions=chunk(ro.actions),
+                  starts=chunk(ro.starts), logprobs=chunk(ro.logprobs), step_states=None)
+    return out, chunk(returns), chunk(advantages)
+
+
+__all__ = ["PPOConfig", "BatchedPPOTrainer", "chunk_steps", "flat_steps"]

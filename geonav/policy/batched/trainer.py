@@ -104,6 +104,9 @@ class RolloutBatch:
     """(T, B) log pi(a_t) while acting (PPO)."""
     values: torch.Tensor | None = None
     """(T, B) V(s_t) while acting (PPO)."""
+    step_states: State | None = None
+    """The recurrent state fed to each step while acting, ((T, B, H), (T, B, H), (T, B, A))
+    (``collect(keep_states=True)``: PPO's ``seq_len`` chunks start from them)."""
 
 
 class BatchedTrainer(A3CTrainer):
@@ -441,9 +444,10 @@ class BatchedTrainer(A3CTrainer):
         self.optimizer.step()
 
     # -- rollouts (A3C and PPO) -------------------------------------------------------------
-    def collect(self, t_max: int, keep_policy: bool = False) -> tuple[RolloutBatch,
-                                                                     list[dict[str, Any]]]:
-        """Act ``t_max`` steps in every slot without autograd."""
+    def collect(self, t_max: int, keep_policy: bool = False, keep_states: bool = False
+                ) -> tuple[RolloutBatch, list[dict[str, Any]]]:
+        """Act ``t_max`` steps in every slot without autograd (``keep_states``: also the
+        recurrent state each step was acted from)."""
         params, e = self.params(), self.net_cfg.embed_dim
         boot_trunc = self.cfg.loss.bootstrap_on_truncation
         finals: list[dict[str, Any]] = []
@@ -452,6 +456,7 @@ class BatchedTrainer(A3CTrainer):
             start_state = reset_state(self.state, self.fresh)
             state = start_state
             vis, tis, acts, starts, lps, vals = [], [], [], [], [], []
+            kept: list[State] = []
             rewards = np.zeros((t_max, self.batch))
             ends = np.zeros((t_max, self.batch), bool)
             end_values = np.zeros((t_max, self.batch)) if boot_trunc else None
@@ -459,6 +464,8 @@ class BatchedTrainer(A3CTrainer):
                 vi, ti = self.slot_indices()
                 starts.append(self.fresh)
                 state = reset_state(state, self.fresh)
+                if keep_states:
+                    kept.append(state)
                 logits, value, state = core_step(params, e, state, pre=tables.pre(vi, ti))
                 a = sample_actions(logits, self.rng).to(self.device)
                 if keep_policy:
@@ -482,7 +489,9 @@ class BatchedTrainer(A3CTrainer):
         batch = RolloutBatch(start_state, torch.stack(vis), torch.stack(tis), torch.stack(acts),
                              rewards, ends, torch.stack(starts), bootstrap, end_values,
                              torch.stack(lps) if keep_policy else None,
-                             torch.stack(vals) if keep_policy else None)
+                             torch.stack(vals) if keep_policy else None,
+                             tuple(torch.stack(x) for x in zip(*kept, strict=True))  # type: ignore[arg-type]
+                             if keep_states else None)
         return batch, finals
 
     def recompute(self, ro: RolloutBatch, slots: torch.Tensor | None = None
