@@ -273,6 +273,8 @@ def run_geonav(algo: str, scene: str, tasks: str, steps: int, seed: int,
         algo, engine = algo[: -len("-batched")], "batched"
     opts: dict[str, Any] = {"episodes": 10 ** 7, "workers": 0, "seed": seed, "lr": args.lr,
                             "eval_every": 0, "eval_max_starts": args.max_starts}
+    if algo == "isar-ppo":  # ISAR with PPO's clipped surrogate as its base loss
+        algo, opts["base_loss"] = "isar", "ppo"
     if algo == "isar":
         opts["alpha"] = args.alpha
     if algo == "ppo":
@@ -350,7 +352,7 @@ def _med(vals: list[float | None], spec: str = ".0f") -> str:
     return text + (f", {miss}/{len(vals)} never" if miss else "")
 
 
-BATCHED = ("geonav-ppo", "a3c-batched", "isar-batched")
+BATCHED = ("geonav-ppo", "a3c-batched", "isar-batched", "isar-ppo-batched")
 
 
 def _plan(args: argparse.Namespace) -> list[tuple[str, str, int | None, str]]:
@@ -424,7 +426,8 @@ def main() -> None:
     ap.add_argument("--methods", default="sb3-ppo,geonav-ppo",
                     help="sb3-ppo (Stable-Baselines3), a3c, isar, savn (the async reference "
                     "trainers), geonav-ppo (geonav's PPO, batched engine), a3c-batched, "
-                    "isar-batched (batched engine)")
+                    "isar-batched, isar-ppo-batched (ISAR with the PPO base loss; batched "
+                    "engine)")
     ap.add_argument("--encoders", default="cnn-ff,cnn,corr",
                     help="geonav methods' encoders: cnn (trainable), corr, random; with "
                     "'-ff' the network is feed-forward (no LSTM, no previous-action "
