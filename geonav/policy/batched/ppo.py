@@ -53,7 +53,8 @@ class PPOConfig(A3CConfig):
     each slot's whole rollout (``t_max`` steps); L (a divisor of ``t_max``): the rollout
     cut into chunks of L steps, each recomputed from the recurrent state it was acted from,
     and minibatches drawn over all chunks of all slots (more, less correlated sequences
-    per minibatch). The feed-forward network always draws single steps."""
+    per minibatch). The feed-forward network always draws single steps. Packed runs
+    (``pack = true``) keep whole sequences either way."""
     normalize_advantages: bool = True
     """Standardise the advantages of each minibatch."""
     critic_warmup: int = 0
