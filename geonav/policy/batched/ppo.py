@@ -199,18 +199,10 @@ def flat_steps(ro: RolloutBatch, returns: torch.Tensor, advantages: torch.Tensor
     across slots and times, as in SB3 (not whole, correlated slot sequences)."""
     from dataclasses import replace
 
-    def flat(x: torch.Tensor) -> torch.Tensor:
-        return x.t().reshape(1, -1)
-
-    n = ro.view_idx.numel()
-    zero = tuple(torch.zeros(n, *x.shape[1:], dtype=x.dtype, device=x.device)
-                 for x in ro.start_state)
-    assert ro.logprobs is not None
-    out = replace(ro, start_state=zero, view_idx=flat(ro.view_idx),  # type: ignore[arg-type]
-                  target_idx=flat(ro.target_idx), actions=flat(ro.actions),
-                  starts=torch.ones(1, n, dtype=torch.bool, device=ro.starts.device),
-                  logprobs=flat(ro.logprobs))
-    return out, flat(returns), flat(advantages)
+    zero = tuple(torch.zeros(ro.view_idx.shape[0], *x.shape, dtype=x.dtype, device=x.device)
+                 for x in ro.start_state)  # (T, B, ...): no step carries a state
+    return chunk_steps(replace(ro, step_states=zero, starts=torch.ones_like(ro.starts)),
+                       returns, advantages, 1)
 
 
 def chunk_steps(ro: RolloutBatch, returns: torch.Tensor, advantages: torch.Tensor,
