@@ -113,13 +113,29 @@ class SampleDataset:
     notes: str = ""
     pansharpen: tuple[str, str] | None = None
     """(pan, ms) members the raster is pansharpened from (None: the raster is a member)."""
+    lidar: str | None = None
+    """A coloured LAS/LAZ member the raster, ``dsm`` and ``dem`` are rasterised from
+    (:mod:`geonav.tiles.lidar`; needs ``geonav[lidar]``)."""
+    dsm: str | None = None
+    """The surface model ``--ingest`` passes as ``--dsm`` (None: the scene is flat)."""
+    dem: str | None = None
+    """The ground model passed as ``--dem`` with ``dsm``."""
 
     @property
     def build(self) -> str:
         """How the raster is made from the members."""
+        if self.lidar is not None:
+            return (f"{self.lidar} rasterised at {LIDAR_CELL_M:g} m by geonav: mean colour of "
+                    "the first returns, highest return (DSM), lowest ground return (DEM, "
+                    "interpolated under cover)")
         if self.pansharpen is None:
             return "as shipped"
         return f"Brovey pansharpening of {self.pansharpen[1]} by {self.pansharpen[0]} (geonav)"
+
+    @property
+    def outputs(self) -> set[str]:
+        """The files the dataset folder holds besides its members."""
+        return {f for f in (self.raster, self.dsm, self.dem) if f}
 
     def manifest_record(self) -> dict[str, Any]:
         """The ``licence`` and ``sample_data`` entries of a scene package's ``scene.json``."""
@@ -144,6 +160,14 @@ SOLARIS = Archive(
         "b29c357cf8f3f326cc10c7/solaris-0.4.0.tar.gz",
     sha256="91d30c189e9e49e5e4e7e1d138fe8d4fe0fb76e51ca0ae89490e13ceb82708e9",
     size_bytes=17_591_346, package="solaris==0.4.0")
+
+LASPY = Archive(
+    url="https://files.pythonhosted.org/packages/9c/5d/5a540ac25dcc57fa77691363bb753363b192a3"
+        "759aefef4b40e1250ddb17/laspy-2.7.0.tar.gz",
+    sha256="f56feb5445e75d6ff12ee814aab6a35339290e75264ff277c6bf553f3025a3f5",
+    size_bytes=1_929_624, package="laspy==2.7.0")
+LIDAR_CELL_M = 1.0
+"""The grid the Autzen points are rasterised on (about 1.8 returns per square metre)."""
 
 _SOL = "solaris-0.4.0/solaris/data/preproc_tutorial/"
 DATASETS: dict[str, SampleDataset] = {d.name: d for d in (
@@ -194,6 +218,34 @@ DATASETS: dict[str, SampleDataset] = {d.name: d for d in (
         notes="multispectral bands are B, G, R, NIR (WorldView-2 order); RGB = bands 3, 2, 1, "
               "scaled to uint8 between the 1st and 99.5th percentile of the tile",
         pansharpen=("pan1.tif", "ms1.tif"),
+    ),
+    SampleDataset(
+        name="autzen-lidar",
+        title="Autzen (Eugene, Oregon) LiDAR trim via laspy 2.7.0: 110,000 coloured returns "
+              "rasterised to 1 m RGB, DSM and ground DEM, 360 x 172 m, Oregon Lambert (ft)",
+        archive=LASPY,
+        members=(
+            Member("laspy-2.7.0/tests/data/autzen_trim.laz",
+                   "75867b3e75cfc3c2e96da9f753c04c9fbaa6a59468dea13e2859f3109b38bd66",
+                   "autzen_trim.laz"),
+            Member("laspy-2.7.0/LICENSE.txt",
+                   "586e5e4d12f36050240d2702abcd3319593f13841440920244f95f15cb83eb63",
+                   "LICENSE.txt"),
+        ),
+        licence_file="LICENSE.txt",
+        licence="BSD-2-Clause (laspy package)",
+        attribution="autzen_trim.laz from laspy 2.7.0 (PyPI sdist, tests/data/; Copyright (c) "
+                    "2012 Grant Brown, Howard Butler, (c) 2020 Thomas Montaigu, BSD 2-Clause "
+                    "License, LICENSE.txt of the package), a trim of the Autzen Stadium LiDAR "
+                    "sample of the PDAL/libLAS test data; rasterised (colour, DSM, DEM) by "
+                    "geonav; the package names no other source or licence for the points",
+        raster="autzen-rgb.tif",
+        notes="point format 3 with RGB and ground class 2; heights in the CRS's linear unit "
+              "(international foot), written in metres; cells without a return are filled "
+              "from neighbours up to 6 m away, the rest (the river) is masked",
+        lidar="autzen_trim.laz",
+        dsm="autzen-dsm.tif",
+        dem="autzen-dem.tif",
     ),
 )}
 
@@ -268,7 +320,7 @@ def cached(name: str, cache: str | os.PathLike[str] | None = None) -> bool:
     if record.get("archive_sha256") != ds.archive.sha256:
         return False
     files = record.get("files", {})
-    wanted = {m.out for m in ds.members} | {ds.raster}
+    wanted = {m.out for m in ds.members} | ds.outputs
     if not wanted <= set(files):
         return False
     return all((folder / f).is_file() and _sha256(folder / f) == sha for f, sha in files.items())
@@ -321,6 +373,14 @@ def fetch(name: str, cache: str | os.PathLike[str] | None = None, *,
                               "sample.json); move it away or use another --cache")
     root.mkdir(parents=True, exist_ok=True)
     note = failure_note(name, root)
+    if ds.lidar is not None:  # before downloading: the build would fail without them
+        from geonav.tiles.lidar import LidarError, require_laspy
+
+        try:
+            require_laspy()
+        except LidarError as err:
+            note.write_text(f"{err}\n")
+            raise SampleDataUnavailable(f"{ds.name}: {err}") from err
     downloaded = 0
     if archive is not None:
         path = Path(archive)
@@ -411,6 +471,8 @@ def _install(ds: SampleDataset, archive: Path, folder: Path, report: Progress) -
             report("build", 0.0)
             brovey_pansharpen(tmp / ds.pansharpen[0], tmp / ds.pansharpen[1], tmp / ds.raster)
             report("build", 1.0)
+        if ds.lidar is not None:
+            _rasterise(ds, tmp, report)
         (tmp / "ATTRIBUTION.txt").write_text(ds.attribution + "\n")
         files = {p.name: _sha256(p) for p in sorted(tmp.iterdir()) if p.is_file()}
         record = {"name": ds.name, "title": ds.title, "archive_url": ds.archive.url,
@@ -427,6 +489,19 @@ def _install(ds: SampleDataset, archive: Path, folder: Path, report: Progress) -
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _rasterise(ds: SampleDataset, folder: Path, report: Progress) -> None:
+    from geonav.tiles.lidar import LidarError, rasterise_point_cloud
+
+    assert ds.lidar is not None and ds.dsm is not None and ds.dem is not None
+    report("build", 0.0)
+    try:
+        rasterise_point_cloud(folder / ds.lidar, folder / ds.raster, folder / ds.dsm,
+                              folder / ds.dem, cell_m=LIDAR_CELL_M)
+    except LidarError as err:
+        raise SampleDataError(f"{ds.name}: {err}") from err
+    report("build", 1.0)
 
 
 def _umask() -> int:
@@ -506,6 +581,9 @@ def ingest_command(name: str, cache: str | os.PathLike[str] | None = None,
     parts = ["geonav", "tiles", "ingest", str(folder / ds.raster)]
     if ds.ingest_bands:
         parts += ["--bands", ",".join(map(str, ds.ingest_bands))]
+    for flag, f in (("--dsm", ds.dsm), ("--dem", ds.dem)):
+        if f:
+            parts += [flag, str(folder / f)]
     parts += ["--name", ds.name, "--out", out]
     return (" ".join(shlex.quote(p) for p in parts)
             + f' --attribution "$(cat {shlex.quote(str(folder / "ATTRIBUTION.txt"))})"')
@@ -538,9 +616,11 @@ def ingest_sample(name: str, cache: str | os.PathLike[str] | None = None, *,
     out = Path(out) if out is not None else default_scene_dir(name, cache)
     if not overwrite and not ingest_kwargs and _same_package(out, name, src):
         return Scene.open(out)
+    heights = {k: dataset_dir(name, cache) / f for k, f in (("dsm", ds.dsm), ("dem", ds.dem))
+               if f}
     return ingest([src], name=ds.name, out=out, attribution=ds.attribution,
                   extra_manifest=ds.manifest_record(), rgb_bands=ds.ingest_bands,
-                  overwrite=overwrite, progress=progress, **ingest_kwargs)
+                  overwrite=overwrite, progress=progress, **heights, **ingest_kwargs)
 
 
 def _same_package(out: Path, name: str, src: Path) -> bool:
