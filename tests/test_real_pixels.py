@@ -116,7 +116,8 @@ def test_every_dataset_is_pinned():
         assert len(ds.archive.sha256) == 64 and ds.archive.size_bytes > 0
         assert all(len(m.sha256) == 64 for m in ds.members)
         assert ds.licence_file in {m.out for m in ds.members}
-        assert ds.raster in {m.out for m in ds.members} or ds.pansharpen is not None
+        assert (ds.raster in {m.out for m in ds.members} or ds.pansharpen is not None
+                or ds.lidar in {m.out for m in ds.members})
         assert ds.licence and ds.attribution
 
 

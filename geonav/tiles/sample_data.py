@@ -616,11 +616,12 @@ def ingest_sample(name: str, cache: str | os.PathLike[str] | None = None, *,
     out = Path(out) if out is not None else default_scene_dir(name, cache)
     if not overwrite and not ingest_kwargs and _same_package(out, name, src):
         return Scene.open(out)
-    heights = {k: dataset_dir(name, cache) / f for k, f in (("dsm", ds.dsm), ("dem", ds.dem))
-               if f}
+    folder = dataset_dir(name, cache)
     return ingest([src], name=ds.name, out=out, attribution=ds.attribution,
                   extra_manifest=ds.manifest_record(), rgb_bands=ds.ingest_bands,
-                  overwrite=overwrite, progress=progress, **heights, **ingest_kwargs)
+                  dsm=folder / ds.dsm if ds.dsm else None,
+                  dem=folder / ds.dem if ds.dem else None,
+                  overwrite=overwrite, progress=progress, **ingest_kwargs)
 
 
 def _same_package(out: Path, name: str, src: Path) -> bool:
