@@ -191,3 +191,25 @@ def test_default_bootstraps_at_truncation():
     diff = (r_on - r_off).numpy()
     np.testing.assert_allclose(diff[cut], cfg.loss.gamma * ro.end_values[cut], atol=1e-5)
     assert np.abs(diff[reached]).max() < 1e-6
+
+
+@pytest.mark.parametrize("recurrent", [False, True])
+def test_minibatch_steps_keeps_the_minibatch_size_as_slots_grow(recurrent):
+    """PPOConfig.minibatch_steps: a rollout of t_max * batch steps is cut into minibatches
+    of about that many steps, so 4x the slots take 4x the gradient steps per pass."""
+    factory = tiny_env_factory(cells=4, max_steps=7)
+    net = replace(tiny_net("random", 32), recurrent=recurrent)
+    steps = {}
+    for batch in (4, 16):
+        t = BatchedPPOTrainer(factory, net, PPOConfig(episodes=10, seed=0, t_max=8, epochs=2,
+                                                      minibatch_steps=16), batch=batch,
+                              tensorboard=False)
+        t._setup()
+        calls = []
+        step = t.step_optimizer
+        t.step_optimizer = lambda loss, _s=step, _c=calls: (_c.append(1), _s(loss))[1]
+        t.update()
+        steps[batch] = len(calls)
+    assert steps == {4: 2 * 2, 16: 2 * 8}  # 32 and 128 steps in minibatches of 16
+    with pytest.raises(ConfigError, match="minibatch_steps must be >= 0"):
+        PPOConfig(minibatch_steps=-1)

@@ -48,6 +48,11 @@ class PPOConfig(A3CConfig):
     """Minibatches per pass: groups of whole slot sequences (at most the batch)."""
     clip_coef: float = 0.2
     """epsilon of the clipped surrogate."""
+    minibatch_steps: int = 0
+    """0: ``minibatches`` minibatches per pass. N > 0: as many as hold about N env steps
+    each (the rollout's t_max * batch steps / N, at least 1; SB3's ``batch_size``), so
+    more slots take proportionally more gradient steps per rollout at the same minibatch
+    size (issue 30's update-count scaling); overrides ``minibatches``."""
     seq_len: int = 0
     """Recurrent network: the length of the sequences PPO's minibatches are drawn from. 0:
     each slot's whole rollout (``t_max`` steps); L (a divisor of ``t_max``): the rollout
@@ -80,6 +85,8 @@ class PPOConfig(A3CConfig):
         if self.seq_len < 0 or (self.seq_len and self.t_max % self.seq_len):
             raise ConfigError(f"seq_len must be 0 or a divisor of t_max ({self.t_max}), got "
                               f"{self.seq_len}")
+        if self.minibatch_steps < 0:
+            raise ConfigError(f"minibatch_steps must be >= 0, got {self.minibatch_steps}")
         if self.critic_warmup < 0:
             raise ConfigError(f"critic_warmup must be >= 0, got {self.critic_warmup}")
         if not 0.0 < self.clip_coef < 1.0:
@@ -122,6 +129,14 @@ class BatchedPPOTrainer(BatchedTrainer):
             out.append({"total": total, "policy": pg, "value": value, "entropy": entropy})
         return out
 
+    def minibatch_count(self, columns: int, steps_per_column: int) -> int:
+        """Minibatches per pass over ``columns`` sequences of ``steps_per_column`` steps
+        (``minibatch_steps``, else ``minibatches``)."""
+        cfg = self.cfg
+        if not cfg.minibatch_steps:
+            return cfg.minibatches
+        return max(1, round(columns * steps_per_column / cfg.minibatch_steps))
+
     def critic_update(self, ro: RolloutBatch, returns: torch.Tensor) -> dict[str, Any]:
         """A warm-up update (``critic_warmup``): ``epochs`` Adam steps of the critic head
         on the rollout's value loss, the policy and every other weight unchanged."""
@@ -155,7 +170,7 @@ class BatchedPPOTrainer(BatchedTrainer):
         elif chunks:
             ro, returns, advantages = chunk_steps(ro, returns, advantages, cfg.seq_len)
             b = ro.view_idx.shape[1]
-        n_mb = min(cfg.minibatches, b)
+        n_mb = min(self.minibatch_count(b, ro.view_idx.shape[0]), b)
         outs: list[dict[str, torch.Tensor]] = []
         for _ in range(cfg.epochs):  # each run's slots in its own order, from its own stream
             perms = [torch.from_numpy(rng.permutation(b)).to(self.device) + i * b
