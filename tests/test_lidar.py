@@ -82,7 +82,7 @@ def test_cells_hold_the_top_the_ground_and_the_first_returns_colour(tmp_path):
     assert tuple(rgb[:, row(0), 0]) == (110, 110, 110)
     # the empty cell is filled from its neighbours
     assert 100.0 <= dsm[row(1), 8] <= 100.2 and rgb[0, row(1), 8] == 110
-    assert res.filled_fraction == pytest.approx(1 / 60)
+    assert res.filled_fraction == pytest.approx(1 / 60) and res.masked_fraction == 0
     assert res.top_above_ground_m == pytest.approx(17.5)
 
 
@@ -181,3 +181,22 @@ def test_autzen_scene_blocks_cells_at_15_m_with_its_real_trees(autzen):
     at15 = blocked_cells(autzen, lattice, 15.0, ObstacleModel())
     at45 = blocked_cells(autzen, lattice, 45.0, ObstacleModel())
     assert 0.01 < at15.mean() < 0.3 and not at45.any()
+
+
+def test_tiles_lidar_command_writes_three_rasters_and_guards_them(tmp_path, capsys):
+    from geonav.cli import main
+
+    las = _cloud(tmp_path / "field.las", _grid_points())
+    out = tmp_path / "out"
+    assert main(["tiles", "lidar", str(las), "--out", str(out), "--fill", "2"]) == 0
+    said = capsys.readouterr().out
+    assert "118 returns -> 10 x 6 cells of 1 m" in said and "--dsm" in said
+    names = sorted(p.name for p in out.glob("*.tif"))
+    assert names == ["field-dem.tif", "field-dsm.tif", "field-rgb.tif"]
+    assert main(["tiles", "lidar", str(las), "--out", str(out)]) == 2  # exists: no --force
+    assert "pass --force" in capsys.readouterr().err
+    assert main(["tiles", "lidar", str(las), "--out", str(out), "--force"]) == 0
+    (out / "field-dsm.tif").write_bytes(b"someone else's file")
+    assert main(["tiles", "lidar", str(las), "--out", str(out), "--force"]) == 2
+    assert "not a raster" in capsys.readouterr().err
+    assert (out / "field-dsm.tif").read_bytes() == b"someone else's file"

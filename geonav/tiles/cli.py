@@ -14,7 +14,8 @@ from geonav.cliutil import (
     seed_int,
 )
 from geonav.errors import GeonavWarning
-from geonav.tiles import DEFAULT_MEMORY_BUDGET_MB, DSM_UNIT_CHOICES, cli_more, sample_data
+from geonav.tiles import (DEFAULT_MEMORY_BUDGET_MB, DSM_UNIT_CHOICES, cli_more, lidar,
+                          sample_data)
 from geonav.tiles.cli_helpers import parse_bands, parse_bbox, parse_lonlat
 
 __all__ = ["add_parser", "parse_bbox", "parse_lonlat", "run_ingest", "run_synth"]
@@ -72,6 +73,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
     cli_more.add_parsers(tsub)
     sample_data.add_parser(tsub)  # geonav tiles sample-data: the pinned real rasters
+    lidar.add_parser(tsub)  # geonav tiles lidar: a LAS/LAZ cloud -> RGB, DSM, DEM
 
 
 def _report(scene, out: Path) -> None:

@@ -63,6 +63,8 @@ class RasterisedCloud:
     points: int
     filled_fraction: float
     """Cells with no return of their own, filled from neighbours (0..1)."""
+    masked_fraction: float
+    """Cells with no return within ``fill_cells``: masked (RGB) and NaN (DSM) (0..1)."""
     ground_m: tuple[float, float]
     """(min, max) of the DEM in metres."""
     top_above_ground_m: float
@@ -151,7 +153,8 @@ def rasterise_point_cloud(path: str | Path, rgb_out: str | Path, dsm_out: str | 
     return RasterisedCloud(
         rgb=Path(rgb_out), dsm=Path(dsm_out), dem=Path(dem_out), width=w, height=h,
         cell_m=cell_m, points=int(len(x)),
-        filled_fraction=float(1.0 - np.isfinite(dsm).mean()),
+        filled_fraction=float((dsm_ok & ~np.isfinite(dsm).reshape(h, w)).mean()),
+        masked_fraction=float(1.0 - dsm_ok.mean()),
         ground_m=(float(np.nanmin(dem_g)), float(np.nanmax(dem_g))),
         top_above_ground_m=top)
 
@@ -204,3 +207,77 @@ def _write_heights(out: Path, grid: np.ndarray, meta: dict[str, Any], what: str)
         dst.write(grid, 1)
         dst.units = ("m",)
         dst.update_tags(METHOD=f"{what} (geonav)", UNITS="metre")
+
+
+# -- command line: geonav tiles lidar --------------------------------------------------------
+KIND = "rasterised point cloud"
+
+
+def _not_ours(path: Path) -> str | None:
+    """Why ``path`` is not a raster this module wrote (None when it is)."""
+    import rasterio
+
+    try:
+        with rasterio.open(path) as src:
+            method = src.tags().get("METHOD", "")
+    except rasterio.errors.RasterioError:
+        return "it is not a raster"
+    return None if method.endswith("(geonav)") else "it is not a raster geonav rasterised"
+
+
+def add_parser(tsub: Any) -> None:
+    """Register ``lidar`` under ``geonav tiles``."""
+    from geonav.cliutil import nonneg_int, positive_float
+
+    p = tsub.add_parser(
+        "lidar", help="rasterise a coloured LAS/LAZ point cloud into RGB, DSM and DEM GeoTIFFs",
+        description="Rasterise a coloured LiDAR point cloud (LAS/LAZ with RGB, a CRS and "
+        "ground-classified points) onto one north-up grid in its CRS: the mean colour of the "
+        "first returns (an orthophoto), the highest return (DSM) and the lowest ground return "
+        "(DEM, interpolated under cover), heights in metres. Then 'geonav tiles ingest "
+        "OUT/NAME-rgb.tif --dsm OUT/NAME-dsm.tif --dem OUT/NAME-dem.tif' (printed). Needs "
+        "'geonav[lidar]'.")
+    p.add_argument("cloud", help="the .las or .laz file")
+    p.add_argument("--out", required=True, help="folder for NAME-rgb.tif, NAME-dsm.tif and "
+                   "NAME-dem.tif")
+    p.add_argument("--name", help="file prefix (default: the cloud's file stem)")
+    p.add_argument("--cell", type=positive_float, default=1.0,
+                   help="grid cell in metres (default 1; about 1/sqrt(returns per m^2))")
+    p.add_argument("--fill", type=nonneg_int, default=6,
+                   help="cells an empty cell may be filled from (default 6); farther stays "
+                   "masked")
+    p.add_argument("--force", action="store_true",
+                   help="replace rasters this command wrote before")
+    p.set_defaults(handler=run)
+
+
+def run(args: Any) -> int:
+    """The ``lidar`` command: rasterise, then print the ingest command."""
+    import contextlib
+    import shlex
+
+    from geonav.outputs import check_replaceable, output_lock
+
+    cloud = Path(args.cloud)
+    if not cloud.is_file():
+        raise LidarError(f"{cloud} does not exist")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    name = args.name or cloud.stem
+    paths = [out / f"{name}-{kind}.tif" for kind in ("rgb", "dsm", "dem")]
+    with contextlib.ExitStack() as stack:
+        for path in paths:
+            stack.enter_context(output_lock(path, "--out"))
+            check_replaceable(path, KIND, force=args.force, why_not=_not_ours, error=LidarError)
+        res = rasterise_point_cloud(cloud, *paths, cell_m=args.cell, fill_cells=args.fill)
+    print(f"{cloud.name}: {res.points:,} returns -> {res.width} x {res.height} cells of "
+          f"{res.cell_m:g} m ({res.filled_fraction:.0%} filled from neighbours, "
+          f"{res.masked_fraction:.0%} masked); ground "
+          f"{res.ground_m[0]:.1f}-{res.ground_m[1]:.1f} m, surface up to "
+          f"{res.top_above_ground_m:.1f} m above it")
+    for path in paths:
+        print(f"  {path}")
+    q = [shlex.quote(str(p)) for p in paths]
+    print(f"  next: geonav tiles ingest {q[0]} --dsm {q[1]} --dem {q[2]} --name "
+          f"{shlex.quote(name)} --out scenes/{shlex.quote(name)} --attribution '...'")
+    return 0
