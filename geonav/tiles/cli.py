@@ -14,8 +14,7 @@ from geonav.cliutil import (
     seed_int,
 )
 from geonav.errors import GeonavWarning
-from geonav.tiles import (DEFAULT_MEMORY_BUDGET_MB, DSM_UNIT_CHOICES, cli_more, lidar,
-                          sample_data)
+from geonav.tiles import DEFAULT_MEMORY_BUDGET_MB, DSM_UNIT_CHOICES, cli_more, lidar, sample_data
 from geonav.tiles.cli_helpers import parse_bands, parse_bbox, parse_lonlat
 
 __all__ = ["add_parser", "parse_bbox", "parse_lonlat", "run_ingest", "run_synth"]
