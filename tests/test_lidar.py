@@ -200,3 +200,12 @@ def test_tiles_lidar_command_writes_three_rasters_and_guards_them(tmp_path, caps
     assert main(["tiles", "lidar", str(las), "--out", str(out), "--force"]) == 2
     assert "not a raster" in capsys.readouterr().err
     assert (out / "field-dsm.tif").read_bytes() == b"someone else's file"
+
+
+def test_a_grid_too_large_for_memory_is_refused(tmp_path, monkeypatch):
+    import geonav.tiles.lidar as lidar
+
+    monkeypatch.setattr(lidar, "MAX_CELLS", 50)
+    las = _cloud(tmp_path / "c.las", _grid_points())
+    with pytest.raises(LidarError, match=r"10 x 6 cells.*--cell 1.1"):
+        rasterise_point_cloud(las, tmp_path / "a.tif", tmp_path / "b.tif", tmp_path / "c.tif")

@@ -31,6 +31,8 @@ from geonav.errors import IngestError
 
 GROUND_CLASS = 2
 """ASPRS LAS classification code of ground points."""
+MAX_CELLS = 25_000_000
+"""The largest grid rasterised (about 1 GB of working arrays)."""
 
 
 class LidarError(IngestError):
@@ -113,6 +115,11 @@ def rasterise_point_cloud(path: str | Path, rgb_out: str | Path, dsm_out: str | 
     x0, y1 = math.floor(x.min() / cell) * cell, math.ceil(y.max() / cell) * cell
     w = max(1, math.ceil((x.max() - x0) / cell))
     h = max(1, math.ceil((y1 - y.min()) / cell))
+    if w * h > MAX_CELLS:
+        raise LidarError(f"{path.name}: a {cell_m:g} m grid over its extent has {w} x {h} cells, "
+                         f"more than the {MAX_CELLS:,} this rasteriser holds in memory; use a "
+                         f"larger cell (--cell {cell_m * math.sqrt(w * h / MAX_CELLS):.2g}) or "
+                         "crop the cloud first")
     col = np.minimum(((x - x0) / cell).astype(np.int64), w - 1)
     row = np.minimum(((y1 - y) / cell).astype(np.int64), h - 1)
     idx = row * w + col
@@ -134,8 +141,7 @@ def rasterise_point_cloud(path: str | Path, rgb_out: str | Path, dsm_out: str | 
     rgb_g = np.empty((3, h, w), np.float32)
     rgb_ok = has.reshape(h, w)
     for b in range(3):  # the same cells reach a value in every band
-        rgb_g[b], reached = _fill(rgb[b].reshape(h, w), has.reshape(h, w), fill_cells)
-    rgb_ok = reached
+        rgb_g[b], rgb_ok = _fill(rgb[b].reshape(h, w), has.reshape(h, w), fill_cells)
     dsm_g = np.where(dsm_ok, np.maximum(dsm_g, dem_g), np.nan).astype(np.float32)
 
     from rasterio.crs import CRS
