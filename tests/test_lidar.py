@@ -209,3 +209,13 @@ def test_a_grid_too_large_for_memory_is_refused(tmp_path, monkeypatch):
     las = _cloud(tmp_path / "c.las", _grid_points())
     with pytest.raises(LidarError, match=r"10 x 6 cells.*--cell 1.1"):
         rasterise_point_cloud(las, tmp_path / "a.tif", tmp_path / "b.tif", tmp_path / "c.tif")
+
+
+def test_an_uncompressed_las_needs_no_laz_backend(tmp_path, monkeypatch):
+    las = _cloud(tmp_path / "c.las", _grid_points())
+    laz = _cloud(tmp_path / "c.laz", _grid_points())  # written compressed, by its suffix
+    monkeypatch.setattr(laspy.LazBackend, "detect_available", staticmethod(lambda: ()))
+    res = rasterise_point_cloud(las, tmp_path / "a.tif", tmp_path / "b.tif", tmp_path / "c.tif")
+    assert res.points == 118
+    with pytest.raises(LidarError, match="no LAZ backend"):
+        rasterise_point_cloud(laz, tmp_path / "d.tif", tmp_path / "e.tif", tmp_path / "f.tif")

@@ -39,14 +39,14 @@ class LidarError(IngestError):
     """A point cloud cannot be read or rasterised (the message says why)."""
 
 
-def require_laspy() -> Any:
-    """laspy with a LAZ backend, or a LidarError that says how to get them."""
+def require_laspy(laz: bool = True) -> Any:
+    """laspy (with a LAZ backend when ``laz``), or a LidarError that says how to get it."""
     try:
         import laspy
     except ImportError as err:
         raise LidarError("reading LiDAR (LAS/LAZ) needs laspy and lazrs: pip install "
                          "'geonav[lidar]' (scripts/setup_env.sh installs them)") from err
-    if not laspy.LazBackend.detect_available():
+    if laz and not laspy.LazBackend.detect_available():
         raise LidarError("laspy is installed but has no LAZ backend: pip install lazrs "
                          "(or 'geonav[lidar]')")
     return laspy
@@ -87,8 +87,8 @@ def rasterise_point_cloud(path: str | Path, rgb_out: str | Path, dsm_out: str | 
         fill_cells: how far (cells) an empty cell is filled from its neighbours; the DEM
             is filled everywhere (ground under a roof).
     """
-    laspy = require_laspy()
     path = Path(path)
+    laspy = require_laspy(laz=path.suffix.lower() == ".laz")
     if not math.isfinite(cell_m) or cell_m <= 0:
         raise LidarError(f"cell_m must be a positive number of metres, got {cell_m}")
     try:

@@ -22,6 +22,9 @@ Datasets (``DATASETS``; docs/real-data.md has the licences and commands):
   by solaris 0.4.0 as a panchromatic (0.5 m) + multispectral (1 m) pair (``pan1.tif``,
   ``ms1.tif``; its ``pan2``/``pan3`` tiles are a third to a half nodata), pansharpened
   here (Brovey) to 0.5 m RGB; solaris is Apache-2.0, SpaceNet 6 imagery CC BY-SA 4.0.
+* ``autzen-lidar``: the coloured Autzen LiDAR trim of laspy 2.7.0's tests
+  (``autzen_trim.laz``, BSD-2-Clause), rasterised here (:mod:`geonav.tiles.lidar`) into
+  1 m RGB, a DSM and a ground DEM, which ``--ingest`` passes on; needs ``geonav[lidar]``.
 
 ``ingest_sample`` turns a cached dataset into a scene package with the licence and
 provenance in ``scene.json`` (``attribution``, ``licence``, ``sample_data``).
