@@ -93,8 +93,18 @@ def ff_setup():
     return _table_setup(replace(tiny_net("random", 32, size=16), recurrent=False), 4, 5.0)
 
 
+@pytest.fixture(scope="module")
+def ffsc_setup():
+    """The feed-forward network with its own FC layer for the critic (separate_critic)."""
+    from dataclasses import replace
+
+    return _table_setup(replace(tiny_net("random", 32, size=16), recurrent=False,
+                                separate_critic=True), 4, 5.0)
+
+
 def _nets(request, kind):
-    return request.getfixturevalue({"cnn": "cnn_setup", "ff": "ff_setup"}.get(kind, "setup"))
+    return request.getfixturevalue({"cnn": "cnn_setup", "ff": "ff_setup",
+                                    "ffsc": "ffsc_setup"}.get(kind, "setup"))
 
 
 def _feats(model, params, adapted, table, rows, rec=None):
@@ -122,7 +132,8 @@ def _ref_slot(model, params, table, views, target, state):
     return logits[:, 0], values[:, 0], end
 
 
-@pytest.mark.parametrize("b,kind", [(1, "random"), (5, "random"), (5, "ff")])
+@pytest.mark.parametrize("b,kind", [(1, "random"), (5, "random"), (5, "ff"),
+                                    (5, "ffsc")])
 def test_sequence_forward_equals_module(request, b, kind):
     model, table = _nets(request, kind)
     g = torch.Generator().manual_seed(b)
@@ -293,7 +304,8 @@ def _ref_window(model, table, data, n_steps, k_segs, alpha, second_order, old=No
 
 @pytest.mark.parametrize("b,gram,kind", [(1, False, "random"), (5, False, "random"),
                                          (5, True, "random"), (1, False, "cnn"),
-                                         (5, False, "cnn"), (5, False, "ff")])
+                                         (5, False, "cnn"), (5, False, "ff"),
+                                         (5, False, "ffsc")])
 def test_inner_updates_equal_functional_call(request, b, gram, kind):
     """Per-slot adapted weights after each inner step equal theta - alpha grad (dense),
     the trainable CNN's included."""
@@ -325,7 +337,8 @@ def test_inner_updates_equal_functional_call(request, b, gram, kind):
 @pytest.mark.parametrize("b,second_order,gram,kind", [
     (1, True, False, "random"), (5, True, False, "random"), (5, False, False, "random"),
     (5, True, True, "random"), (5, False, True, "random"), (1, True, False, "cnn"),
-    (5, True, False, "cnn"), (5, False, False, "cnn"), (5, True, False, "ff")])
+    (5, True, False, "cnn"), (5, False, False, "cnn"), (5, True, False, "ff"),
+    (5, True, False, "ffsc")])
 def test_window_gradient_equals_functional_call(request, b, second_order, gram, kind):
     """ISAR's window gradient w.r.t. phi (second and first order), summed over slots; the
     view embeddings' factors dense or as table rows with the Gram matrix; the trainable

@@ -135,6 +135,32 @@ def test_feed_forward_learns_tiny_task():
     assert sr >= rnd + 0.4, (sr, rnd)
 
 
+def test_separate_critic_keeps_the_heads_apart():
+    """NetConfig.separate_critic: the FC layer is 2H wide, the value's gradient reaches
+    only the critic's half and the policy's only the actor's; PPO's flat minibatches still
+    recompute the acting values; a recurrent network refuses it."""
+    from geonav.policy.batched.ppo import flat_steps
+
+    net = replace(tiny_net("random", 32, size=16), recurrent=False, separate_critic=True)
+    t = BatchedPPOTrainer(tiny_env_factory(max_steps=5), net, PPOConfig(episodes=10),
+                          batch=6, tensorboard=False)
+    h = net.hidden_size
+    assert t.model.fc.weight.shape[0] == 2 * h and t.model.critic.weight.shape[1] == h
+    t._setup()
+    ro, finals = t.collect(12, keep_policy=True)
+    returns, advantages = t.advantages(ro, ro.values)
+    flat, _, _ = flat_steps(ro, returns, advantages)
+    cols = torch.tensor([0, 13, 40, 71])
+    logits, values = t.recompute(flat, cols)
+    torch.testing.assert_close(values[0], ro.values[cols % 12, cols // 12], atol=1e-5, rtol=0)
+    fc = t.model.fc.weight
+    for out, half in ((values.sum(), slice(0, h)), (logits.sum(), slice(h, 2 * h))):
+        (g,) = torch.autograd.grad(out, fc, retain_graph=True)
+        assert float(g[half].abs().max()) == 0.0 and float(g.abs().max()) > 0
+    with pytest.raises(ConfigError, match="separate_critic needs a feed-forward"):
+        replace(net, recurrent=True)
+
+
 def test_critic_warmup_moves_only_the_critic_head():
     """PPOConfig.critic_warmup: the first rollouts fit the critic head alone (its value
     loss falls), every other weight stays bit for bit; after them PPO updates everything."""

@@ -75,6 +75,12 @@ class NetConfig:
     feeds the heads, so the policy is a function of the current and target views alone
     (enough on geonav's fully observed tasks), and PPO can draw its minibatches from single
     steps instead of whole slot sequences (docs/learning.md §14)."""
+    separate_critic: bool = False
+    """Feed-forward networks only (``recurrent = False``): the critic gets its own FC layer
+    of ``hidden_size`` over the same view embeddings, as SB3's separate policy and value
+    MLPs, instead of sharing the actor's (docs/learning.md §14, stop 43). Stored as one FC
+    layer of 2 x ``hidden_size`` outputs, the actor reading the first half and the critic
+    the second, which is the same map as two layers."""
     prev_view_input: bool = False
     """Add the extra input slot E(o^prev) (ALGORITHMS.md (e), option B): the encoder features
     of the view at the same cell at the previous curriculum stage's altitude, embedded by
@@ -106,6 +112,9 @@ class NetConfig:
             raise ConfigError(f"init must be one of {INITS}, not {self.init!r}")
         if self.actor_init_std is not None and not self.actor_init_std > 0:
             raise ConfigError(f"actor_init_std must be positive, got {self.actor_init_std}")
+        if self.separate_critic and self.recurrent:
+            raise ConfigError("separate_critic needs a feed-forward network (recurrent = "
+                              "false): the recurrent network's heads share its LSTM")
         for name in ("embed_dim", "action_embed_dim", "hidden_size", "lstm_size", "n_actions"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"{name} must be >= 1, got {getattr(self, name)}")

@@ -91,8 +91,10 @@ class ActorCritic(nn.Module):
         # Feed-forward (recurrent=False): no previous-action input and no LSTM.
         self.action_embed: nn.Linear | None = nn.Linear(cfg.n_actions, cfg.action_embed_dim) \
             if cfg.recurrent else None
+        # separate_critic: one layer of 2H outputs, the actor's H then the critic's H.
         self.fc = nn.Linear(self.n_view_slots * cfg.embed_dim
-                            + (cfg.action_embed_dim if cfg.recurrent else 0), cfg.hidden_size)
+                            + (cfg.action_embed_dim if cfg.recurrent else 0),
+                            cfg.hidden_size * (2 if cfg.separate_critic else 1))
         self.lstm: nn.LSTMCell | None = nn.LSTMCell(cfg.hidden_size, cfg.lstm_size) \
             if cfg.recurrent else None
         head_in = cfg.lstm_size if cfg.recurrent else cfg.hidden_size
@@ -202,9 +204,9 @@ class ActorCritic(nn.Module):
         pre = F.linear(torch.cat(parts, dim=-1), w[:, :k], self.fc.bias)  # (T, B, H)
         h, c, p = state
         if self.lstm is None:  # feed-forward: the heads read the FC layer's output
-            x = F.relu(pre)
-            logits = self.actor(x)
-            return logits, self.critic(x).squeeze(-1), (h, c, F.softmax(logits[-1], dim=-1))
+            x_pi, x_v = head_inputs(F.relu(pre), self.cfg.hidden_size)
+            logits = self.actor(x_pi)
+            return logits, self.critic(x_v).squeeze(-1), (h, c, F.softmax(logits[-1], dim=-1))
         assert self.action_embed is not None
         w_act = w[:, k:]  # sliced once: one SliceBackward per call, not one per step
         hs = []
@@ -220,6 +222,14 @@ class ActorCritic(nn.Module):
         logits = torch.stack(logits_steps)
         values = self.critic(torch.stack(hs)).squeeze(-1)
         return logits, values, (h, c, p)
+
+
+def head_inputs(x: torch.Tensor, hidden: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The actor's and the critic's inputs from a feed-forward FC layer's output: the same
+    tensor, or its two halves with ``NetConfig.separate_critic`` (2 x ``hidden`` wide)."""
+    if x.shape[-1] == hidden:
+        return x, x
+    return x[..., :hidden], x[..., hidden:]
 
 
 def detach_state(state: State) -> State:

@@ -43,7 +43,7 @@ import torch
 from torch.nn import functional as F
 
 from geonav.errors import ConfigError
-from geonav.policy.model import ActorCritic, State
+from geonav.policy.model import ActorCritic, State, head_inputs
 
 Params = dict[str, torch.Tensor]
 
@@ -499,8 +499,9 @@ def core_step(params: Params, embed_dim: int, state: State, *,
         parts = [obs_e, tgt_e] + ([] if prev_e is None else [prev_e]) + act_e
         x = F.relu(linear(params, "fc", torch.cat(parts, -1), adapted, rec))
     if not recurrent:  # feed-forward: the heads read the FC layer's output
-        logit = linear(params, "actor", x, adapted, rec)
-        value = linear(params, "critic", x, adapted, rec).squeeze(-1)
+        x_pi, x_v = head_inputs(x, _head_width(params))
+        logit = linear(params, "actor", x_pi, adapted, rec)
+        value = linear(params, "critic", x_v, adapted, rec).squeeze(-1)
         return logit, value, (h, c, F.softmax(logit, dim=-1))
     gates = linear(params, "lstm_ih", x, adapted, rec)
     gates = gates + linear(params, "lstm_hh", h, adapted, None, back=rec)
@@ -510,6 +511,12 @@ def core_step(params: Params, embed_dim: int, state: State, *,
     logit = linear(params, "actor", h, adapted, rec)
     value = linear(params, "critic", h, adapted, rec).squeeze(-1)
     return logit, value, (h, c, F.softmax(logit, dim=-1))
+
+
+def _head_width(params: Params) -> int:
+    """Input width H of the actor head, whatever the layout: (A, H) shared, (B, H, A) per
+    slot (stored transposed) or (R, A, H) packed runs, with biases (A,), (B, A), (R, A)."""
+    return params["actor.weight"].numel() // params["actor.bias"].numel()
 
 
 def reset_state(state: State, start: torch.Tensor | None) -> State:
