@@ -115,13 +115,17 @@ def test_cli_train_config_of_the_wrong_type_is_one_line(tmp_path, capsys):
 
 
 def test_a_partial_nested_table_keeps_the_parents_default():
-    """``[ppo.loss] beta = 0`` changes the entropy weight only: PPO's GAE lambda stays
-    0.95 (its ``loss`` default), not LossConfig's class default 1.0; A3C's stays 1.0."""
+    """``[ppo.loss] beta = 0`` changes the entropy weight only: PPO's GAE lambda and
+    discount stay 0.95 (its ``loss`` default), not LossConfig's class defaults 1.0 and
+    0.99; A3C's stay those."""
     from geonav.policy.batched.ppo import PPOConfig
     from geonav.policy.config import A3CConfig, LossConfig, from_dict
 
     ppo = from_dict(PPOConfig, {"loss": {"beta": 0.0}})
-    assert ppo.loss == LossConfig(tau=0.95, beta=0.0, bootstrap_on_truncation=True)
+    assert ppo.loss == LossConfig(gamma=0.95, tau=0.95, beta=0.0,
+                                  bootstrap_on_truncation=True)
+    assert from_dict(PPOConfig, {"loss": {"gamma": 0.99}}).loss == LossConfig(
+        gamma=0.99, tau=0.95, bootstrap_on_truncation=True)  # configs/real.toml's pin
     assert from_dict(A3CConfig, {"loss": {"beta": 0.0}}).loss == LossConfig(beta=0.0)
     full = {"gamma": 0.9, "tau": 0.5, "beta": 0.1, "value_coef": 1.0,
             "bootstrap_on_truncation": True}
