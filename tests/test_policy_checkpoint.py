@@ -68,6 +68,18 @@ def test_mismatched_env_is_refused(trained):
         check_compatible({**meta, "action_meanings": ["north", "east", "west", "south"]}, env)
     with pytest.raises(CheckpointError, match="encoder"):
         check_compatible(meta, env, net_cfg=tiny_net(encoder="cnn"))
+    from dataclasses import replace
+
+    net = load_checkpoint(out / "checkpoints" / "final.pt").net_config
+    ff = replace(net, recurrent=False)
+    with pytest.raises(CheckpointError, match="recurrent=True, but this run asks for "
+                                              "recurrent=False"):
+        check_compatible(meta, env, net_cfg=ff)
+    ff_meta = {**meta, "net": {**meta["net"], "recurrent": False}}
+    check_compatible(ff_meta, env, net_cfg=ff)
+    with pytest.raises(CheckpointError, match="separate_critic=False, but this run asks for "
+                                              "separate_critic=True"):
+        check_compatible(ff_meta, env, net_cfg=replace(ff, separate_critic=True))
     with pytest.raises(CheckpointError, match="px"):
         A3CTrainer(tiny_env_factory(obs_size_px=48), None, A3CConfig(episodes=8, workers=0),
                    resume=out / "checkpoints" / "final.pt")

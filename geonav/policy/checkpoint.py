@@ -283,11 +283,12 @@ def check_compatible(meta: dict[str, Any], env: Any, *, path: Any = "checkpoint"
             if ck.get(key) != getattr(net_cfg, key):
                 raise CheckpointError(f"{path} has {key}={ck.get(key)!r}, but this run asks for "
                                       f"{key}={getattr(net_cfg, key)!r}")
-        # absent from checkpoints written before the extra slot existed: False
-        if bool(ck.get("prev_view_input", False)) != net_cfg.prev_view_input:
-            raise CheckpointError(f"{path} has prev_view_input="
-                                  f"{bool(ck.get('prev_view_input', False))}, but this run asks "
-                                  f"for prev_view_input={net_cfg.prev_view_input}")
+        # absent from checkpoints written before the option existed: its default then
+        for key, default in (("prev_view_input", False), ("recurrent", True),
+                             ("separate_critic", False)):
+            if bool(ck.get(key, default)) != getattr(net_cfg, key):
+                raise CheckpointError(f"{path} has {key}={bool(ck.get(key, default))}, but this "
+                                      f"run asks for {key}={getattr(net_cfg, key)}")
     if meta.get("scene_id") and em["scene_id"] and meta["scene_id"] != em["scene_id"]:
         log.info("%s was trained on scene %s, now used on %s", path, meta.get("scene_name"),
                  em["scene_name"])
