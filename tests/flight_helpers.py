@@ -6,9 +6,9 @@ from geonav.mavlink_bridge.sequence import Timeouts
 
 META = {"obs_size_px": 32, "alt_m": 10.0, "step_m": 5.0, "fov_deg": 90.0}
 START, TARGET = (5, 5), (7, 6)
-# Upper bounds only: a passing flight never waits them out. connect_s is the longest: a
-# module's first emulator link waited more than 10 s for its first HEARTBEAT in 3 of 6
-# full-suite runs while the other test worker kept both cores busy (stop 43).
+# Upper bounds only: a passing flight never waits them out. connect_s is the longest: in
+# two full-suite runs of stop 43 (2 workers, both cores busy) a module's first emulator
+# link waited more than the former 10 s for its first HEARTBEAT.
 FAST = Timeouts(
     connect_s=30,
     ready_s=10,
